@@ -1,0 +1,46 @@
+"""The ``endogsim`` command line. Each capability registers its commands from its own module."""
+
+from __future__ import annotations
+
+import typer
+
+from endogsim.cli import common
+
+app = typer.Typer(
+    name="endogsim",
+    help="Physics-aware 4D endoscopic scenes: Gaussian splats, material field, differentiable MPM.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+bench_app = typer.Typer(help="Benchmarks that print a table (and write JSON with --json).", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
+materials_app = typer.Typer(help="Material field: initialise, show.", no_args_is_help=True)
+app.add_typer(materials_app, name="materials")
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", help="Print the version and exit.")) -> None:
+    if version:
+        from endogsim import __version__
+
+        typer.echo(__version__)
+        raise typer.Exit()
+
+
+def _register() -> None:
+    # Each module owns its commands; importing it must stay cheap (heavy imports inside commands).
+    from endogsim.cli import demo, info, materials, reconstruct, synth  # noqa: F401
+    from endogsim.bench import mpm as bench_mpm, render as bench_render  # noqa: F401
+
+    for module in (info, demo, synth, reconstruct):
+        module.register(app)
+    materials.register(materials_app)
+    bench_render.register(bench_app)
+    bench_mpm.register(bench_app)
+
+
+_register()
+
+
+def main() -> None:  # pragma: no cover - console entry point wrapper
+    common.run_cli(app)

@@ -1,0 +1,25 @@
+"""Exceptions that carry a message meant for the user.
+
+Every error the package raises on bad input is an :class:`EndoGSimError`; the CLI prints its
+message without a traceback. Subclasses say which stage refused the input.
+"""
+
+
+class EndoGSimError(Exception):
+    """Base class: the message names the file or value and what is wrong with it."""
+
+
+class DataError(EndoGSimError):
+    """A dataset folder, frame, mask, depth map or poses file is missing or malformed."""
+
+
+class ModelError(EndoGSimError):
+    """A Gaussian model or PLY file is malformed, or a model-backed prior lacks its weights."""
+
+
+class MaterialError(EndoGSimError):
+    """A material value is impossible (E <= 0, nu outside (-1, 0.5), density <= 0, ...)."""
+
+
+class SimulationError(EndoGSimError):
+    """The simulation was refused (unstable time step) or diverged (NaN/inf)."""

@@ -1,0 +1,39 @@
+"""Pinhole camera in the OpenCV convention (x right, y down, z forward)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class Camera:
+    """A pinhole camera.
+
+    Attributes:
+        K: [3, 3] intrinsics in pixels (fx, fy, cx, cy); pixel centres sit at integer + 0.5.
+        width: image width in pixels.
+        height: image height in pixels.
+        viewmat: [4, 4] world-to-camera transform. Identity for a fixed endoscope (world = camera frame).
+    """
+
+    K: torch.Tensor
+    width: int
+    height: int
+    viewmat: torch.Tensor = field(default_factory=lambda: torch.eye(4))
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by ``factor`` (0.5 halves width and height)."""
+        K = self.K.clone()
+        K[:2] *= factor
+        return Camera(K, round(self.width * factor), round(self.height * factor), self.viewmat.clone())
+
+    def to(self, device: torch.device | str) -> "Camera":
+        return Camera(self.K.to(device), self.width, self.height, self.viewmat.to(device))
+
+    @staticmethod
+    def from_focal(focal: float, width: int, height: int) -> "Camera":
+        """A camera with square pixels and the principal point at the image centre."""
+        K = torch.tensor([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+        return Camera(K, width, height)
