@@ -1,0 +1,153 @@
+"""``endogsim bench identify``: the identification ablations of the paper, on the procedural benchmark scenes.
+
+Tables (RE = mean relative error of E, nu, G, K; EPE in pixels against the ground-truth flow):
+  1. initialisation (manual, prior) x optimisation (off, on): RE and EPE      (the paper's Table 3)
+  2. object-wise material field vs one global material on ``two_tissues``    (the paper's Figure 4)
+  3. loss: render only, flow only, joint
+  4. gradient mode: last_substep, frame, full: RE reached and seconds
+
+Scenes are synthesized once into ``--scenes-dir`` (reused afterwards). ``--quick`` runs everything on
+``tiny`` (and a shortened ``two_tissues``) with few iterations so the whole bench takes minutes on a CPU.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from endogsim.cli.common import user_errors
+
+ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
+
+
+def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None) -> Path:
+    """The folder of benchmark scene ``name`` under ``scenes_dir``, synthesized if missing."""
+    from endogsim.synth import synthesize
+
+    folder = scenes_dir / (name if frames is None else f"{name}_f{frames}")
+    if not (folder / "scene.json").is_file():
+        synthesize(name, folder, seed=0, frames=frames)
+    return folder
+
+
+def _run(scene: Path, out: Path, init: str, cfg, fresh: bool = True) -> dict:
+    from endogsim.identify import run_identify
+
+    t0 = time.perf_counter()
+    m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, video=False)
+    m["wall_seconds"] = time.perf_counter() - t0
+    return m
+
+
+def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int | None = None,
+              scenes: list[str] | None = None, tables: list[str] | None = None, log=print) -> dict:
+    """Run the ablations; returns {"tables": {name: {"columns": [...], "rows": [[...]]}}, "runs": {...}}.
+
+    Args:
+        scenes_dir: where benchmark scenes are (or get) synthesized.
+        work_dir: run folders of every identification.
+        quick: tiny scenes, few frames and iterations.
+        iters: iterations per optimised run (default 6 quick, 30 otherwise).
+        scenes: scenes of tables 1, 3, 4 (default: tiny quick, else the five procedural scenes for table 1
+            and ``press`` for tables 3 and 4).
+        tables: subset of {"init", "field", "loss", "grad"}.
+    """
+    from endogsim.identify import IdentifyConfig
+
+    tables = tables or ["init", "field", "loss", "grad"]
+    n_it = iters if iters is not None else (6 if quick else 30)
+    frames = 6 if quick else None
+    main_scenes = scenes or (["tiny"] if quick else list(ALL_SCENES))
+    abl_scene = (scenes or ["tiny"])[0] if quick else (scenes[0] if scenes else "press")
+    base = dict(iters=n_it, frames=frames, render_scale=0.5)
+    out: dict = {"tables": {}, "runs": {}, "settings": {"quick": quick, "iters": n_it, "frames": frames}}
+
+    def scene_dir(name: str) -> Path:
+        return ensure_scene(name, scenes_dir, None)
+
+    def record(key: str, m: dict) -> dict:
+        out["runs"][key] = {k: m.get(k) for k in ("scene", "init", "loss", "grad_mode", "global_material", "re_mean",
+                                                   "re_E", "re_nu", "epe", "psnr", "ssim", "seconds", "iterations",
+                                                   "materials")}
+        log(f"  {key}: RE {m.get('re_mean', math.nan):.3f}  EPE {m['epe']:.3f} px  {m['seconds']:.0f} s")
+        return m
+
+    if "init" in tables:
+        rows = []
+        for sc in main_scenes:
+            folder = scene_dir(sc)
+            row = [sc]
+            for init in ("manual", "prior"):
+                for on in (False, True):
+                    cfg = IdentifyConfig(**{**base, "iters": n_it if on else 0})
+                    key = f"init/{sc}/{init}/{'on' if on else 'off'}"
+                    m = record(key, _run(folder, work_dir / key, init, cfg))
+                    row += [m.get("re_mean", math.nan), m["epe"]]
+            rows.append(row)
+        if len(rows) > 1:
+            rows.append(["mean"] + [sum(r[i] for r in rows) / len(rows) for i in range(1, len(rows[0]))])
+        out["tables"]["init"] = {"title": "Initialisation x optimisation (RE / EPE px)",
+                                 "columns": ["scene", "manual off RE", "EPE", "manual on RE", "EPE",
+                                             "prior off RE", "EPE", "prior on RE", "EPE"], "rows": rows}
+    if "field" in tables:
+        folder = scene_dir("two_tissues")
+        rows = []
+        for glob in (False, True):
+            key = f"field/two_tissues/{'global' if glob else 'field'}"
+            cfg = IdentifyConfig(**{**base, "global_material": glob})
+            m = record(key, _run(folder, work_dir / key, "prior", cfg))
+            mats = "; ".join(f"{n} {v['E']:.4g} Pa / {v['nu']:.3f}" for n, v in m["materials"].items() if not v["rigid"])
+            rows.append(["global material" if glob else "material field", m.get("re_mean", math.nan), m["epe"], mats])
+        out["tables"]["field"] = {"title": "Material field vs global material on two_tissues",
+                                  "columns": ["variant", "RE", "EPE px", "identified"], "rows": rows}
+    if "loss" in tables:
+        folder = scene_dir(abl_scene)
+        rows = []
+        for loss in ("render", "flow", "joint"):
+            key = f"loss/{abl_scene}/{loss}"
+            m = record(key, _run(folder, work_dir / key, "prior", IdentifyConfig(**{**base, "loss": loss})))
+            rows.append([loss, m.get("re_mean", math.nan), m["epe"], m["seconds"]])
+        out["tables"]["loss"] = {"title": f"Loss ablation on {abl_scene}", "columns": ["loss", "RE", "EPE px", "seconds"],
+                                 "rows": rows}
+    if "grad" in tables:
+        folder = scene_dir(abl_scene)
+        rows = []
+        for mode in ("last_substep", "frame", "full"):
+            key = f"grad/{abl_scene}/{mode}"
+            m = record(key, _run(folder, work_dir / key, "prior", IdentifyConfig(**{**base, "grad_mode": mode})))
+            rows.append([mode, m.get("re_mean", math.nan), m["epe"], m["seconds"], m["iterations"]])
+        out["tables"]["grad"] = {"title": f"Gradient mode on {abl_scene}",
+                                 "columns": ["grad mode", "RE", "EPE px", "seconds", "iterations"], "rows": rows}
+    return out
+
+
+def register(bench_app: typer.Typer) -> None:
+    """Add ``identify`` to the ``bench`` sub-app."""
+
+    @bench_app.command("identify")
+    @user_errors
+    def bench_identify(
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the tables and runs as JSON."),
+        quick: bool = typer.Option(False, "--quick", help="tiny scene, 6 frames, 6 iterations (minutes on CPU)."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per optimised run."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated scenes for the tables."),
+        tables: Optional[str] = typer.Option(None, "--tables", help="Comma-separated subset of init,field,loss,grad."),
+        scenes_dir: Path = typer.Option(Path.home() / ".cache" / "endogsim" / "bench_scenes", "--scenes-dir",
+                                        help="Where benchmark scenes are synthesized (reused)."),
+        work_dir: Path = typer.Option(Path("bench_identify_runs"), "--work-dir", help="Run folders of the ablations."),
+    ) -> None:
+        """Identification ablations: init x optimisation, material field vs global, loss, gradient mode."""
+        from endogsim.cli.common import console, print_table, write_json_atomic
+
+        res = run_bench(scenes_dir, work_dir, quick=quick, iters=iters,
+                        scenes=scenes.split(",") if scenes else None, tables=tables.split(",") if tables else None,
+                        log=console.print)
+        for t in res["tables"].values():
+            print_table(t["title"], t["columns"], t["rows"])
+        if json_out is not None:
+            write_json_atomic(json_out, res)
+            console.print(f"wrote {json_out}")

@@ -1,0 +1,70 @@
+"""``endogsim identify`` and ``endogsim bench identify``: material identification from a scene folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from endogsim.cli.common import user_errors
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``identify`` to the root ``app``."""
+
+    @app.command("identify")
+    @user_errors
+    def identify_cmd(
+        scene: Path = typer.Argument(..., help="Scene folder with scene.json (e.g. from `endogsim synth`)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Run folder (outputs and checkpoint; resumes if present)."),
+        init: str = typer.Option("prior", "--init", help="manual | prior | mllm | replay | a materials JSON file."),
+        loss: str = typer.Option("joint", "--loss", help="joint (render + 0.1 flow) | render | flow."),
+        grad_mode: str = typer.Option("frame", "--grad-mode", help="last_substep | frame | full."),
+        iters: int = typer.Option(30, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
+        global_material: bool = typer.Option(False, "--global-material",
+                                              help="One (E, nu) for every deformable object (ablation)."),
+        lr: float = typer.Option(0.1, "--lr", help="Adam step (decades of E; raw nu units)."),
+        render_scale: float = typer.Option(0.5, "--render-scale", help="Render/compare at this fraction of the image size."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+        flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
+        flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
+        device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
+        no_video: bool = typer.Option(False, "--no-video", help="Skip comparison.mp4."),
+        fresh: bool = typer.Option(False, "--fresh", help="Ignore a checkpoint in --out and start over."),
+    ) -> None:
+        """Refine E and nu of the deformable objects so the simulated, rendered scene matches the video
+        (appearance and optical flow). Writes identified materials, metrics.json, plots, a video, a summary."""
+        from endogsim.cli.common import console, print_table, progress
+        from endogsim.identify import IdentifyConfig, run_identify
+
+        cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
+                             render_scale=render_scale, frames=frames, flow_estimator=flow, flow_weights=flow_weights,
+                             device=device)
+        with progress() as bar:
+            task = bar.add_task("identify", total=max(iters, 1))
+
+            def cb(k: int, total: int, rec: dict) -> None:
+                E = ", ".join(f"{v:.4g}" for v in rec["E"].values())
+                nu = ", ".join(f"{v:.3f}" for v in rec["nu"].values())
+                bar.update(task, completed=k, description=f"identify (loss {rec['loss']:.4g}; E {E} Pa; nu {nu})")
+
+            m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video)
+            bar.update(task, completed=max(iters, 1))
+        rows = [(name, f"{v['E']:.4g}", f"{v['nu']:.3f}", "rigid (frozen)" if v["rigid"] else "identified")
+                for name, v in m["materials"].items()]
+        print_table(f"Materials of {m['scene']} ({m['iterations']} iterations, {m['stopped']}, {m['seconds']:.0f} s)",
+                    ["object", "E (Pa)", "nu", ""], rows)
+        scores = [("EPE (px)", m["epe"]), ("PSNR (dB)", m["psnr"]), ("SSIM", m["ssim"])]
+        if "re_mean" in m:
+            scores = [("RE E", m["re_E"]), ("RE nu", m["re_nu"]), ("RE G", m["re_G"]), ("RE K", m["re_K"]),
+                      ("RE mean", m["re_mean"])] + scores
+        print_table("Scores", ["metric", "value"], scores)
+        console.print(f"wrote {out}")
+
+
+def register_bench(bench_app: typer.Typer) -> None:
+    """Add ``bench identify`` to the ``bench`` sub-app (implemented in :mod:`endogsim.bench.identify`)."""
+    from endogsim.bench.identify import register as _register
+
+    _register(bench_app)

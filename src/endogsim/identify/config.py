@@ -1,0 +1,93 @@
+"""Typed options of material identification (:func:`endogsim.identify.identify`)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Literal
+
+from endogsim.errors import MaterialError
+
+LossKind = Literal["joint", "render", "flow"]
+GradMode = Literal["last_substep", "frame", "full"]
+LOSSES = ("joint", "render", "flow")
+GRAD_MODES = ("last_substep", "frame", "full")
+
+
+@dataclass
+class IdentifyConfig:
+    """How identification runs.
+
+    Attributes:
+        loss: "joint" (the paper's L = render + lambda * flow), "render" (appearance only) or "flow" (motion only).
+        flow_weight: lambda, the weight of the flow term (paper: 0.1).
+        grad_mode: gradient through the simulator: "last_substep" (paper), "frame" or "full"
+            (see :func:`endogsim.physics.mpm_rollout`).
+        iters: the most optimisation iterations (each = one simulation + render + backward).
+        lr: Adam step on log10 E (decades) and on the raw (pre-sigmoid) Poisson parameter.
+        lr_final_fraction: the step decays exponentially to ``lr * lr_final_fraction`` at the last iteration.
+        max_grad_norm: gradient clipping (L2 norm over all parameters).
+        tol: relative loss improvement below which an iteration does not count as progress.
+        patience: stop after this many iterations without progress (early stopping).
+        global_material: tie every deformable object to one (E, nu) pair (the "no material field" ablation).
+        nu_bounds: (lo, hi) of the bounded Poisson parametrisation nu = lo + (hi - lo) sigmoid(raw).
+        E_min: lower end of the search box for E (Pa); the upper end is the stability limit (and ``E_max``).
+        E_max: an optional extra upper bound (Pa).
+        stability_margin: keep E below this fraction of the CFL-limited maximum.
+        optimize_nu: also optimise nu (else only E moves).
+        render_scale: render (and compare) at this fraction of the image size (1 = full); flows scale with it.
+        flow_estimator: "dis_fine" (offline default: DIS tuned for sub-pixel motion), "dis" (OpenCV DIS
+            "medium" preset) or "raft" (needs ``flow_weights``).
+        flow_weights: local RAFT weights file.
+        frames: use only the first ``frames`` frames (None = all).
+        seed: torch seed (the loop itself is deterministic).
+        device: "cpu" or "cuda" for the simulator and renderer.
+    """
+
+    loss: LossKind = "joint"
+    flow_weight: float = 0.1
+    grad_mode: GradMode = "frame"
+    iters: int = 30
+    lr: float = 0.1
+    lr_final_fraction: float = 0.2
+    max_grad_norm: float = 10.0
+    tol: float = 1e-3
+    patience: int = 6
+    global_material: bool = False
+    nu_bounds: tuple[float, float] = (0.0, 0.49)
+    E_min: float = 50.0
+    E_max: float | None = None
+    stability_margin: float = 0.95
+    optimize_nu: bool = True
+    render_scale: float = 0.5
+    flow_estimator: str = "dis_fine"
+    flow_weights: str | None = None
+    frames: int | None = None
+    seed: int = 0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise MaterialError(f"loss {self.loss!r} is not one of {', '.join(LOSSES)}")
+        if self.grad_mode not in GRAD_MODES:
+            raise MaterialError(f"grad mode {self.grad_mode!r} is not one of {', '.join(GRAD_MODES)}")
+        if self.iters < 0:
+            raise MaterialError(f"iters = {self.iters} must be >= 0")
+        if not self.lr > 0:
+            raise MaterialError(f"lr = {self.lr} must be > 0")
+        if not (0 < self.render_scale <= 1):
+            raise MaterialError(f"render_scale = {self.render_scale} must lie in (0, 1]")
+        if not self.E_min > 0:
+            raise MaterialError(f"E_min = {self.E_min} Pa must be > 0")
+        if self.flow_weight < 0:
+            raise MaterialError(f"flow_weight = {self.flow_weight} must be >= 0")
+        self.nu_bounds = (float(self.nu_bounds[0]), float(self.nu_bounds[1]))
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["nu_bounds"] = list(self.nu_bounds)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "IdentifyConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: (tuple(v) if k == "nu_bounds" else v) for k, v in d.items() if k in known})

@@ -1,0 +1,116 @@
+"""Simulate the scene for given materials and render it: the differentiable forward model of identification.
+
+    materials (log10 E, nu per object)  --mpm_rollout-->  particle positions [T,P,3], F [T,P,3,3]
+        --drive_gaussians-->  Gaussian means / covariances per frame (tools follow their rigid transforms)
+        --render_with_flow-->  RGB [T,H,W,3] and Gaussian flow t -> t+1 [T-1,H,W,2]
+
+Every step is differentiable, so a loss on the renders back-propagates to log10 E and nu.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.flow import render_with_flow
+from endogsim.gaussians.render import rasterize
+from endogsim.identify.problem import IdentifyProblem
+from endogsim.materials.field import MaterialField, MaterialParams
+from endogsim.physics import drive_gaussians, mpm_rollout
+
+__all__ = ["Rendered", "material_tables", "simulate_materials", "render_sequence"]
+
+
+@dataclass
+class Rendered:
+    """Renders of a simulated sequence.
+
+    Attributes:
+        rgb: [T, H, W, 3] in [0, 1] (frame 0 is the rest state).
+        flow: [T-1, H, W, 2] Gaussian flow t -> t+1 (pixels of the rendered resolution).
+        alpha: [T, H, W] accumulated opacity.
+    """
+
+    rgb: torch.Tensor
+    flow: torch.Tensor
+    alpha: torch.Tensor
+
+
+def material_tables(field: MaterialField, params: MaterialParams | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-object-id arrays for the simulator (length max_id + 1): log10 E [Pa], nu, density [kg/m^3].
+
+    The deformable objects' entries come from ``params`` (differentiable) when given, else from the records.
+    Ids without a record get harmless values (no particle carries them).
+    """
+    table = field.per_object()
+    n = len(table["E"])
+    E = torch.as_tensor(table["E"], dtype=torch.float64).nan_to_num(1e3)
+    log10_E = torch.log10(E)
+    nu = torch.as_tensor(table["nu"], dtype=torch.float64).nan_to_num(0.3)
+    rho = torch.as_tensor(table["rho"], dtype=torch.float64).nan_to_num(1000.0)
+    if params is not None:
+        idx = torch.zeros(n, dtype=torch.long)
+        mask = torch.zeros(n, dtype=torch.bool)
+        for oid in params.object_ids:
+            idx[oid], mask[oid] = params.slot(oid), True
+        log10_E = torch.where(mask, params.log10_E.to(torch.float64)[idx], log10_E)
+        nu = torch.where(mask, params.nu().to(torch.float64)[idx], nu)
+    return log10_E, nu, rho
+
+
+def simulate_materials(problem: IdentifyProblem, log10_E: torch.Tensor, nu: torch.Tensor, density: torch.Tensor,
+                       num_frames: int, grad_mode: str = "frame") -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable rollout of the problem's particles: positions [T, P, 3] (m) and F [T, P, 3, 3]."""
+    return mpm_rollout(problem.particles, log10_E, nu, density, problem.scenario, problem.mpm, num_frames,
+                       grad_mode=grad_mode)
+
+
+def _frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
+    """Means [N, 3] and covariances [N, 3, 3] of every Gaussian at frame t (float32, differentiable)."""
+    g = problem.gaussians
+    means, covs, _ = drive_gaussians(g, problem.binding, positions[t].float(), F[t].float(), rotate_colors=False)
+    for oid, tf in problem.tool_transforms.items():
+        sel = g.object_ids == oid
+        if not bool(sel.any()):
+            continue
+        R = tf[t, :3, :3].float()
+        tr = tf[t, :3, 3].float()
+        moved = g.means[sel].float() @ R.T + tr
+        means = means.clone()
+        covs = covs.clone()
+        means[sel] = moved
+        covs[sel] = R @ cov0[sel] @ R.T
+    return means, covs
+
+
+def render_sequence(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
+                    backend: str = "auto") -> Rendered:
+    """Render every frame of a simulation and the Gaussian flow between consecutive frames.
+
+    Args:
+        problem: the scene (Gaussians, binding, tool transforms).
+        positions: [T, P, 3] particle positions (m); F: [T, P, 3, 3] deformation gradients.
+        camera: the camera to render with (possibly scaled from ``problem.camera``).
+    Returns:
+        :class:`Rendered` (differentiable in positions and F).
+    """
+    g = problem.gaussians
+    T = positions.shape[0]
+    cov0 = g.covariances().float().detach()
+    opac = g.opacities.float().detach()
+    colors = g.colors_dc.clamp(0, 1).float().detach() if g.sh_degree == 0 else g.sh.float().detach()
+    states = [_frame_gaussians(problem, positions, F, cov0, t) for t in range(T)]
+    rgbs, flows, alphas = [], [], []
+    for t in range(T):
+        m, c = states[t]
+        if t + 1 < T:
+            r = render_with_flow(m, opac, colors, camera, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
+                                 backend=backend)
+            flows.append(r.flow)
+        else:
+            r = rasterize(m, opac, colors, camera, covars=c, backend=backend)
+        rgbs.append(r.rgb)
+        alphas.append(r.alpha)
+    return Rendered(torch.stack(rgbs), torch.stack(flows), torch.stack(alphas))

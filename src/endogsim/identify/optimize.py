@@ -1,0 +1,287 @@
+"""The identification loop: Adam on log10 E and bounded nu of the deformable objects.
+
+One iteration: simulate from the frame-0 state with the current materials (differentiable MLS-MPM,
+``config.grad_mode``), render every frame and its Gaussian flow, evaluate the loss against the observed
+video and its estimated flow, back-propagate, clip the gradient, take an Adam step, and project back into
+the search box. Rigid objects are never parameters (frozen by construction).
+
+Search box: E in [E_min, margin * E_max(nu)] where E_max(nu) is the CFL limit of the identification
+discretisation (:func:`endogsim.physics.max_stable_E`); nu in the sigmoid's (lo, hi). An initial material
+beyond the stability limit is refused with a message giving the limit.
+
+Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
+not improved by a relative ``tol`` for ``patience`` iterations; a checkpoint is written atomically after
+every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from endogsim.errors import DataError, SimulationError
+from endogsim.identify.config import IdentifyConfig
+from endogsim.identify.forward import material_tables, render_sequence, simulate_materials
+from endogsim.identify.loss import Observations, identification_loss, make_observations, observed_flow
+from endogsim.identify.problem import IdentifyProblem
+from endogsim.materials.field import MaterialField, MaterialParams
+from endogsim.physics import max_stable_E
+
+__all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+_CKPT_VERSION = 1
+
+
+@dataclass
+class IdentifyResult:
+    """Outcome of :func:`identify`.
+
+    Attributes:
+        field: identified material field (physical units; deformable objects' source = "identified").
+        init_field: the field it started from.
+        history: one dict per iteration: iteration, loss, render, flow, lr, grad_norm, E {id: Pa}, nu {id: -}.
+        best_iteration: index into ``history`` of the kept iterate (-1 when no iteration ran).
+        best_loss: its loss.
+        iterations: iterations run in total (over resumes).
+        seconds: optimisation wall time in total (over resumes).
+        stopped: "converged" (early stop), "iters" (budget spent) or "no_iterations".
+    """
+
+    field: MaterialField
+    init_field: MaterialField
+    history: list[dict] = field(default_factory=list)
+    best_iteration: int = -1
+    best_loss: float = math.nan
+    iterations: int = 0
+    seconds: float = 0.0
+    stopped: str = "iters"
+    notes: list[str] = field(default_factory=list)
+
+
+def stable_log10_E_max(problem: IdentifyProblem, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
+    """Upper end of the search box for log10 E per parameter slot: margin * the CFL limit at ``nu`` (and E_max)."""
+    out = []
+    for n, rho in zip(nu.detach().double().tolist(), density.detach().double().tolist()):
+        e = config.stability_margin * max_stable_E(n, rho, problem.mpm, problem.scenario.box.size)
+        if config.E_max is not None:
+            e = min(e, config.E_max)
+        out.append(math.log10(e))
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def check_stable(problem: IdentifyProblem, fld: MaterialField) -> None:
+    """Refuse materials the identification discretisation cannot simulate stably (clear message).
+
+    Used for materials a user asked for explicitly (a materials file); guesses of an initialiser (prior,
+    MLLM) are instead clamped into the search box by :func:`identify` (``strict=False``).
+    """
+    mpm = problem.mpm
+    for r in fld.deformable:
+        if r.object_id not in problem.deformable_ids:
+            continue
+        emax = max_stable_E(r.nu, r.density, mpm, problem.scenario.box.size)
+        if r.E > emax:
+            dt = mpm.frame_dt / mpm.substeps_per_frame
+            raise SimulationError(
+                f"object {r.object_id} ({r.name!r}): E = {r.E:.4g} Pa (nu {r.nu:.3f}) is beyond the stability limit "
+                f"E_max = {emax:.4g} Pa of the identification simulation (grid {mpm.grid_res}, dt {dt:.3g} s, "
+                f"{mpm.substeps_per_frame} substeps per frame, CFL {mpm.cfl_number}); start from E <= {emax:.4g} Pa "
+                "or raise the substeps in scene.json")
+
+
+def _slot_density(problem: IdentifyProblem, fld: MaterialField, params: MaterialParams) -> torch.Tensor:
+    """Density per parameter slot (the largest of the tied objects under a global material: the stiffer bound)."""
+    n = params.log10_E.shape[0]
+    rho = [0.0] * n
+    for oid in params.object_ids:
+        s = params.slot(oid)
+        rho[s] = max(rho[s], fld[oid].density)
+    return torch.tensor(rho, dtype=torch.float64)
+
+
+def _project(params: MaterialParams, problem: IdentifyProblem, fld: MaterialField, config: IdentifyConfig) -> None:
+    """Clamp log10 E into [log10 E_min, log10 E_max(nu)] in place (keeps the simulation stable)."""
+    with torch.no_grad():
+        hi = stable_log10_E_max(problem, params.nu(), _slot_density(problem, fld, params), config)
+        lo = torch.full_like(hi, math.log10(config.E_min))
+        params.log10_E.copy_(torch.maximum(torch.minimum(params.log10_E, hi), lo))
+
+
+def _values(params: MaterialParams) -> tuple[dict[str, float], dict[str, float]]:
+    E = params.E().detach().tolist()
+    nu = params.nu().detach().tolist()
+    return ({str(o): E[params.slot(o)] for o in params.object_ids}, {str(o): nu[params.slot(o)] for o in params.object_ids})
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _signature(problem: IdentifyProblem, init: MaterialField, config: IdentifyConfig) -> dict:
+    cfg = config.to_json()
+    cfg.pop("iters", None)  # a resumed run may be given a larger budget
+    cfg.pop("device", None)
+    return {"scene": str(Path(problem.folder).resolve()), "frames": problem.num_frames, "config": cfg,
+            "init": init.to_json()["objects"]}
+
+
+def prepare_observations(problem: IdentifyProblem, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
+    """Observed flow (cached in ``run_dir``) and the observations at the rendering scale, plus the camera."""
+    cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
+    U = observed_flow(problem.frames, config.flow_estimator, config.flow_weights, cache)
+    cam = problem.camera if config.render_scale == 1 else problem.camera.scaled(config.render_scale)
+    obs = make_observations(problem.frames, U, problem.object_masks, problem.deformable_ids, (cam.width, cam.height))
+    return obs, cam
+
+
+def evaluate_loss(problem: IdentifyProblem, fld: MaterialField, params: MaterialParams | None, obs: Observations,
+                  camera, config: IdentifyConfig, grad: bool):
+    """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects)."""
+    log10_E, nu, rho = material_tables(fld, params)
+    with torch.set_grad_enabled(grad):
+        pos, F = simulate_materials(problem, log10_E, nu, rho, problem.num_frames, config.grad_mode)
+        rendered = render_sequence(problem, pos, F, camera)
+        return identification_loss(rendered, obs, config.loss, config.flow_weight)
+
+
+def identify(
+    problem: IdentifyProblem,
+    init_field: MaterialField,
+    config: IdentifyConfig | None = None,
+    run_dir: str | Path | None = None,
+    resume: bool = True,
+    progress: Callable[[int, int, dict], None] | None = None,
+    stop_after: int | None = None,
+    strict: bool = False,
+) -> IdentifyResult:
+    """Identify E and nu of the deformable objects of ``problem`` from its observed video.
+
+    Args:
+        problem: the scene (see :func:`endogsim.identify.load_problem`).
+        init_field: starting materials (every object id of the scene needs a record); rigid objects stay as given.
+        config: options (default :class:`IdentifyConfig`).
+        run_dir: folder for the flow cache and the checkpoint (None: nothing written, no resume).
+        resume: continue from ``run_dir/checkpoint.pt`` when it was made with the same settings.
+        progress: callback(iteration done, iters, info) after every iteration.
+        stop_after: stop (as if interrupted) after this many iterations in this call; for tests.
+        strict: refuse initial materials beyond the stability limit (explicit user request) instead of
+            starting from the nearest stable value (an initialiser's guess).
+    Returns:
+        :class:`IdentifyResult` with the best iterate's materials.
+    Raises:
+        SimulationError when the initial materials are beyond the stability limit.
+    """
+    cfg = config or IdentifyConfig()
+    torch.manual_seed(cfg.seed)
+    missing = [o for o in problem.labels if o not in {r.object_id for r in init_field.records}]
+    if missing:
+        raise DataError(f"the initial material field has no record for object(s) {missing} of {problem.folder}")
+    if strict:
+        check_stable(problem, init_field)
+    run_dir = None if run_dir is None else Path(run_dir)
+    if run_dir is not None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    obs, cam = prepare_observations(problem, cfg, run_dir)
+
+    params = init_field.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
+    keep_ids = [o for o in params.object_ids if o in problem.deformable_ids]
+    if not keep_ids:
+        raise DataError(f"{problem.folder}: no deformable object of the scene has a non-rigid initial material")
+    before = params.E().detach().clone()
+    _project(params, problem, init_field, cfg)
+    notes = []
+    after = params.E().detach()
+    for oid in params.object_ids:
+        s = params.slot(oid)
+        if abs(float(after[s]) - float(before[s])) > 1e-6 * float(before[s]):
+            notes.append(f"object {oid}: initial E {float(before[s]):.4g} Pa is outside the search box "
+                         f"[E_min, stability limit]; started from {float(after[s]):.4g} Pa")
+    leaves = [params.log10_E] + ([params.nu_raw] if cfg.optimize_nu else [])
+    opt = torch.optim.Adam(leaves, lr=cfg.lr, betas=(0.9, 0.99))
+    sig = _signature(problem, init_field, cfg)
+
+    start, history, best, seconds, stale = 0, [], None, 0.0, 0
+    ckpt_path = None if run_dir is None else run_dir / CHECKPOINT_NAME
+    if ckpt_path is not None and ckpt_path.is_file() and resume:
+        ck = torch.load(ckpt_path, weights_only=False)
+        if ck.get("version") != _CKPT_VERSION or ck.get("signature") != sig:
+            raise DataError(f"{ckpt_path} was written by a run with other settings (scene, frames, loss, grad mode, "
+                            "init or options); use --fresh to start over or choose another --out")
+        with torch.no_grad():
+            params.log10_E.copy_(ck["log10_E"])
+            params.nu_raw.copy_(ck["nu_raw"])
+        opt.load_state_dict(ck["optimizer"])
+        start, history, best, seconds, stale = ck["iteration"], ck["history"], ck["best"], ck["seconds"], ck["stale"]
+
+    stopped = "iters" if cfg.iters > 0 else "no_iterations"
+    if history and history[-1].get("converged"):
+        stopped, start = "converged", max(start, cfg.iters)
+    done_here = 0
+    for k in range(start, cfg.iters):
+        if stop_after is not None and done_here >= stop_after:
+            stopped = "interrupted"
+            break
+        t0 = time.perf_counter()
+        lr = cfg.lr * cfg.lr_final_fraction ** (k / max(cfg.iters - 1, 1))
+        for gr in opt.param_groups:
+            gr["lr"] = lr
+        opt.zero_grad(set_to_none=True)
+        loss, parts = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+        loss.backward()
+        for leaf in leaves:
+            if leaf.grad is None:
+                leaf.grad = torch.zeros_like(leaf)
+            leaf.grad.nan_to_num_(0.0, 0.0, 0.0)
+        gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
+        E, nu = _values(params)
+        rec = {"iteration": k, "loss": parts["total"], "render": parts["render"], "flow": parts["flow"], "lr": lr,
+               "grad_norm": gnorm, "grad_log10_E": params.log10_E.grad.tolist(),
+               "grad_nu_raw": (params.nu_raw.grad.tolist() if params.nu_raw.grad is not None else None),
+               "E": E, "nu": nu}
+        if best is None or parts["total"] < best["loss"]:
+            improved = best is None or parts["total"] < best["loss"] * (1 - cfg.tol)
+            best = {"loss": parts["total"], "iteration": k, "log10_E": params.log10_E.detach().clone(),
+                    "nu_raw": params.nu_raw.detach().clone()}
+            stale = 0 if improved else stale + 1
+        else:
+            stale += 1
+        opt.step()
+        _project(params, problem, init_field, cfg)
+        seconds += time.perf_counter() - t0
+        rec["seconds"] = seconds
+        rec["converged"] = stale >= cfg.patience
+        history.append(rec)
+        done_here += 1
+        if ckpt_path is not None:
+            _atomic_torch_save({"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
+                                "log10_E": params.log10_E.detach().clone(), "nu_raw": params.nu_raw.detach().clone(),
+                                "optimizer": opt.state_dict(), "history": history, "best": best,
+                                "seconds": seconds, "stale": stale}, ckpt_path)
+        if progress is not None:
+            progress(k + 1, cfg.iters, rec)
+        if rec["converged"]:
+            stopped = "converged"
+            break
+
+    if best is None:  # optimisation off: the initial materials are the answer
+        ident = MaterialField([r.model_copy() for r in init_field.records], meta=dict(init_field.meta))
+    else:
+        final = init_field.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
+        with torch.no_grad():
+            final.log10_E.copy_(best["log10_E"])
+            final.nu_raw.copy_(best["nu_raw"])
+        ident = init_field.from_params(final, source="identified")
+    return IdentifyResult(field=ident, init_field=init_field, history=history,
+                          best_iteration=-1 if best is None else int(best["iteration"]),
+                          best_loss=math.nan if best is None else float(best["loss"]),
+                          iterations=len(history), seconds=seconds, stopped=stopped, notes=notes)

@@ -1,0 +1,267 @@
+"""An identification problem read from a scene folder: what was observed and the world to simulate it in.
+
+A scene folder (``endogsim synth``, or any folder laid out the same way) gives:
+  * the observed video ``images/`` (and ``object_masks/`` for the valid pixels),
+  * the frame-0 Gaussians ``gaussians_t0.ply`` with object ids,
+  * ``scene.json``: objects (ids, names, classes, rigid flags, ground truth where known), camera, and the
+    scenario: sim box, gravity, damping, boundary conditions, tool capsules with their per-frame rigid
+    transforms (the observed tool trajectory) and the identification discretisation,
+  * ``particles_t0.npz``: the particle layout with its anchored (boundary-condition) flags. Without it the
+    particles are made from the deformable Gaussians (extruded along the viewing rays by the scenario's
+    thickness) and the boundary conditions are rebuilt from their description in ``scene.json``.
+
+:func:`load_problem` turns that into an :class:`IdentifyProblem` holding the simulator's inputs
+(:class:`~endogsim.physics.Particles`, :class:`~endogsim.physics.Scenario`, :class:`~endogsim.physics.MPMConfig`)
+and the renderer's (Gaussians, camera, per-Gaussian binding to particles). Units: metres, seconds, Pa.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from endogsim.errors import DataError
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
+from endogsim.io.scene import ObjectLabel
+from endogsim.physics import (
+    Anchor,
+    GaussianBinding,
+    MPMConfig,
+    Particles,
+    RigidCollider,
+    Scenario,
+    SimBox,
+    bind_gaussians,
+    particles_from_gaussians,
+)
+from endogsim.synth.spec import SceneTruth, load_scene_truth
+
+__all__ = ["IdentifyProblem", "load_problem", "capsule_collider_points", "read_observations"]
+
+
+@dataclass
+class IdentifyProblem:
+    """Everything one identification needs, in world units.
+
+    Attributes:
+        folder: the scene folder.
+        truth: the parsed ``scene.json`` (ground-truth materials are used only for metrics).
+        labels: id -> ObjectLabel (tools are the rigid objects), for material initialisation.
+        frames: [T, H, W, 3] float32 observed RGB in [0, 1].
+        object_masks: [T, H, W] int32 object id per pixel (0 = background) or None.
+        camera: the fixed endoscope (full resolution).
+        gaussians: frame-0 Gaussians of every object (world metres).
+        deformable_ids: ids of the simulated (non-rigid) objects.
+        particles: the simulated particles (deformable objects only).
+        scenario: sim box, gravity, anchors (pinned particles), tool colliders.
+        mpm: the identification discretisation (grid, substeps, dt).
+        binding: how each Gaussian follows its k nearest particles.
+        tool_transforms: {object id: [T, 4, 4] world rigid transforms per frame} for rigid Gaussians.
+        gt_flow: [T-1, H, W, 2] ground-truth flow (pixels) or None; gt_flow_valid: [T-1, H, W] bool or None.
+    """
+
+    folder: Path
+    truth: SceneTruth
+    labels: dict[int, ObjectLabel]
+    frames: np.ndarray
+    object_masks: np.ndarray | None
+    camera: Camera
+    gaussians: Gaussians
+    deformable_ids: list[int]
+    particles: Particles
+    scenario: Scenario
+    mpm: MPMConfig
+    binding: GaussianBinding
+    tool_transforms: dict[int, torch.Tensor]
+    gt_flow: np.ndarray | None = None
+    gt_flow_valid: np.ndarray | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def has_truth(self) -> bool:
+        return self.truth.source in ("procedural",) or bool(self.truth.objects)
+
+
+def capsule_collider_points(tip, end, radius: float, dx: float) -> tuple[np.ndarray, float]:
+    """Points filling a capsule (segment tip-end, ``radius`` metres) for a point-based kinematic collider.
+
+    The simulator marks grid nodes within a small contact radius of each collider point, so a capsule is
+    sampled on a lattice of spacing dx / 2 inside the capsule shrunk by that contact radius
+    (0.45 dx >= half the lattice diagonal), plus the nearby lattice points projected onto the shrunk
+    surface: the union of the little spheres then covers the capsule and stays inside it.
+
+    Returns:
+        points [Pc, 3] (metres, world, frame 0) and the contact radius (metres).
+    """
+    a, b = np.asarray(tip, float), np.asarray(end, float)
+    rho = 0.45 * dx
+    inner = max(radius - rho, 0.0)
+    h = dx / 2
+    lo = np.minimum(a, b) - inner
+    hi = np.maximum(a, b) + inner
+    axes = [np.arange(lo[i], hi[i] + h / 2, h) for i in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    ab = b - a
+    t = np.clip(((g - a) @ ab) / max(ab @ ab, 1e-18), 0, 1)
+    d = np.linalg.norm(g - (a + t[:, None] * ab), axis=1)
+    # Lattice points just outside the shrunk capsule are projected onto its surface: projection onto a
+    # convex set is non-expansive, so every point of the shrunk capsule stays within half a lattice
+    # diagonal (< rho) of some collider point, and no contact sphere pokes out of the capsule.
+    keep = d <= inner + 0.5 * math.sqrt(3.0) * h + 1e-12
+    g, t, d = g[keep], t[keep], d[keep]
+    axis_pt = a + t[:, None] * ab
+    outside = d > inner
+    g[outside] = axis_pt[outside] + (g[outside] - axis_pt[outside]) * (inner / d[outside])[:, None]
+    pts = np.unique(np.round(g, 12), axis=0) if inner > 0 else g[:0]
+    if len(pts) == 0:  # a capsule thinner than the lattice: its axis alone
+        n = max(2, int(math.ceil(np.linalg.norm(ab) / h)) + 1)
+        pts = a + np.linspace(0, 1, n)[:, None] * ab
+        rho = max(radius, rho)
+    return pts, float(rho)
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DataError(f"{path}: cannot read image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+
+def read_observations(folder: Path, truth: SceneTruth, frames: int) -> tuple[np.ndarray, np.ndarray | None,
+                                                                           np.ndarray | None, np.ndarray | None]:
+    """Observed frames [T, H, W, 3], object masks [T, H, W] (or None), ground-truth flow [T-1, H, W, 2] and
+    its valid mask [T-1, H, W] (or None) of a scene folder."""
+    import cv2
+
+    pat = truth.files.get("images", "images/frame-%06d.color.png")
+    imgs = [_read_rgb(folder / (pat % t)) for t in range(frames)]
+    out_frames = np.stack(imgs)
+    masks = None
+    mpat = truth.files.get("object_masks")
+    if mpat and (folder / (mpat % 0)).is_file():
+        masks = np.stack([cv2.imread(str(folder / (mpat % t)), cv2.IMREAD_UNCHANGED).astype(np.int32)
+                          for t in range(frames)])
+    flow = valid = None
+    fpat, vpat = truth.files.get("flow"), truth.files.get("flow_valid")
+    if fpat and (folder / (fpat % 0)).is_file():
+        flow = np.stack([np.load(folder / (fpat % t)).astype(np.float32) for t in range(frames - 1)])
+        if vpat and (folder / (vpat % 0)).is_file():
+            valid = np.stack([cv2.imread(str(folder / (vpat % t)), cv2.IMREAD_UNCHANGED) > 127
+                              for t in range(frames - 1)])
+        else:
+            valid = np.ones(flow.shape[:3], bool)
+    return out_frames, masks, flow, valid
+
+
+def _particles_without_file(g: Gaussians, truth: SceneTruth, camera: Camera, deformable: list[int]) -> tuple[Particles, np.ndarray]:
+    """Particles from the deformable Gaussians and the anchors rebuilt from the scene's description.
+
+    Back face: the deepest extrusion layer (along the viewing ray); border: particles within ``border``
+    metres (in the image-parallel plane) of the object's outline.
+    """
+    sc = truth.scenario
+    thick = sc.extrusion.get("thickness", {}) if isinstance(sc.extrusion, dict) else {}
+    parts, anchored = [], []
+    for oid in deformable:
+        name = truth.object(oid).name
+        t = float(thick.get(name, 0.0)) if isinstance(thick, dict) else float(thick)
+        p = particles_from_gaussians(g, sc.particle_spacing, [oid], thickness=t, camera=camera if t > 0 else None)
+        bc = next((b for b in sc.boundary_conditions if b.get("type") == "anchors" and b.get("object") == name), {})
+        x = p.x.double().numpy()
+        a = np.zeros(len(x), bool)
+        gm = g.means[g.object_ids == oid].detach().double().numpy()
+        if bc.get("back_face", False) and t > 0:
+            from scipy.spatial import cKDTree
+
+            _, nb = cKDTree(gm).query(x, k=1)
+            depth_behind = np.linalg.norm(x, axis=1) - np.linalg.norm(gm[nb], axis=1)
+            a |= depth_behind >= t - sc.particle_spacing * 0.75
+        band = float(bc.get("border", 0.0))
+        if band > 0:
+            import cv2
+
+            # Distance to the outline in the plane of the image (x, y), from the Gaussians' convex footprint.
+            hull = cv2.convexHull(gm[:, :2].astype(np.float32))
+            d = np.array([cv2.pointPolygonTest(hull, (float(px), float(py)), True) for px, py in x[:, :2]])
+            a |= d < band
+        parts.append(p)
+        anchored.append(a)
+    return Particles.concat(parts), np.concatenate(anchored)
+
+
+def load_problem(folder: str | Path, frames: int | None = None, device: str = "cpu") -> IdentifyProblem:
+    """Read a scene folder into an :class:`IdentifyProblem`.
+
+    Args:
+        folder: a folder with ``scene.json`` (``endogsim synth`` output layout).
+        frames: use only the first ``frames`` frames (>= 2); default all.
+        device: simulator device ("cpu" or "cuda").
+    """
+    from endogsim.gaussians.ply import read_ply
+
+    folder = Path(folder)
+    if not (folder / "scene.json").is_file():
+        raise DataError(f"{folder}: no scene.json; identification needs a scene folder with the scenario "
+                        "(make one with `endogsim synth NAME --out DIR`)")
+    truth = load_scene_truth(folder)
+    T = truth.frames if frames is None else int(frames)
+    if T < 2 or T > truth.frames:
+        raise DataError(f"{folder}: frames = {T} must lie in [2, {truth.frames}]")
+    obs, masks, flow, valid = read_observations(folder, truth, T)
+    cam_t = truth.camera
+    camera = Camera(torch.tensor(cam_t.K, dtype=torch.float32), cam_t.width, cam_t.height,
+                    torch.tensor(cam_t.viewmat, dtype=torch.float32))
+    if obs.shape[1:3] != (camera.height, camera.width):
+        raise DataError(f"{folder}: images are {obs.shape[2]}x{obs.shape[1]}, scene.json camera {camera.width}x{camera.height}")
+    ply = folder / truth.files.get("gaussians_t0", "gaussians_t0.ply")
+    if not ply.is_file():
+        raise DataError(f"{ply}: frame-0 Gaussians missing")
+    g = read_ply(ply)
+    labels = {o.id: ObjectLabel(o.id, o.name, bool(o.rigid), o.klass) for o in truth.objects}
+    deformable = [o.id for o in truth.objects if not o.rigid]
+    if not deformable:
+        raise DataError(f"{folder}: scene.json has no deformable object to identify")
+
+    sc = truth.scenario
+    ident = sc.identification
+    box = SimBox(tuple(float(v) for v in sc.box_lo), float(sc.box_size))
+    dx = box.size / ident.grid
+    pfile = folder / truth.files.get("particles_t0", "particles_t0.npz")
+    if pfile.is_file():
+        d = np.load(pfile)
+        keep = np.isin(d["object_id"], deformable)
+        particles = Particles(torch.as_tensor(d["x"][keep], dtype=torch.float32),
+                              torch.as_tensor(d["vol"][keep], dtype=torch.float32),
+                              torch.as_tensor(d["object_id"][keep], dtype=torch.int64))
+        anchored = d["anchored"][keep].astype(bool)
+    else:
+        particles, anchored = _particles_without_file(g, truth, camera, deformable)
+
+    colliders, tool_tf = [], {}
+    for tool in sc.tools:
+        tf = torch.tensor(tool.transforms, dtype=torch.float64)[:T]
+        if tf.shape[0] < T:
+            raise DataError(f"{folder}: tool {tool.object_id} has {tf.shape[0]} transforms for {T} frames")
+        pts, rad = capsule_collider_points(tool.tip, tool.end, tool.radius, dx)
+        colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=tf, radius=rad))
+        tool_tf[tool.object_id] = tf
+    anchors = [Anchor(kind="fixed", particle_mask=torch.as_tensor(anchored))] if anchored.any() else []
+    scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=anchors, colliders=colliders)
+    walls = next((int(b.get("cells", 2)) for b in sc.boundary_conditions if b.get("type") == "box_walls"), 2)
+    mpm = MPMConfig(grid_res=int(ident.grid), frame_dt=float(sc.frame_dt), substeps_per_frame=int(ident.substeps),
+                    dt=None, damping=float(sc.damping), wall="sticky", wall_padding=max(2, walls),
+                    material_model="fixed_corotated", device=device)
+    binding = bind_gaussians(g.means, g.object_ids, particles)
+    return IdentifyProblem(folder=folder, truth=truth, labels=labels, frames=obs, object_masks=masks, camera=camera,
+                           gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
+                           binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid)

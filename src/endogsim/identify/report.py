@@ -1,0 +1,168 @@
+"""Evaluate identified materials and write a run folder.
+
+Run folder written by :func:`write_outputs` (every file atomically):
+  materials_identified.json   the identified material field (E Pa, nu, density kg/m^3; MaterialField JSON)
+  materials_init.json         the field it started from
+  metrics.json                RE (per object and mean, ``re_mean``), ``epe`` (px), ``psnr`` (dB), ``ssim``,
+                              ``seconds``, ``iterations``, final loss, settings
+  history.json                per-iteration loss, parameters, gradients
+  loss.png, parameters.png    loss and parameter trajectories
+  comparison.mp4              observed | simulated | flow error (|U_sim - U_gt| or, without ground truth,
+                              |U_sim - U_observed|; colour scale 0..1 px)
+  summary.txt                 a short text summary
+  observed_flow.npz, checkpoint.pt   the cached observed flow and the resumable optimiser state
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from endogsim.cli.common import write_json_atomic
+from endogsim.evaluate.flow_metrics import epe as epe_metric
+from endogsim.evaluate.image_metrics import psnr, ssim
+from endogsim.evaluate.material_metrics import scene_relative_errors
+from endogsim.evaluate.plots import plot_loss, plot_parameters
+from endogsim.identify.config import IdentifyConfig
+from endogsim.identify.forward import material_tables, render_sequence
+from endogsim.identify.optimize import IdentifyResult
+from endogsim.identify.problem import IdentifyProblem
+from endogsim.materials.field import MaterialField
+from endogsim.physics import simulate
+
+__all__ = ["Evaluation", "evaluate_field", "material_errors", "write_outputs"]
+
+FLOW_ERROR_RANGE = 1.0  # pixels mapped to the top of the colour scale in the video
+
+
+@dataclass
+class Evaluation:
+    """A forward simulation with given materials, rendered at full resolution, and its scores.
+
+    Attributes:
+        rgb: [T, H, W, 3] simulated frames; flow: [T-1, H, W, 2] Gaussian flow (pixels).
+        epe: mean end-point error (px) against the ground-truth flow (NaN without it).
+        psnr, ssim: simulated vs observed frames (all frames, whole image).
+        flow_error: [T-1, H, W] |flow - reference| (px), reference = ground truth or observed estimate.
+    """
+
+    rgb: np.ndarray
+    flow: np.ndarray
+    epe: float
+    psnr: float
+    ssim: float
+    flow_error: np.ndarray
+
+
+def evaluate_field(problem: IdentifyProblem, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
+    """Simulate ``fld`` (no gradients; substeps from the CFL rule), render, and score it."""
+    log10_E, nu, rho = material_tables(fld)
+    with torch.no_grad():
+        res = simulate(problem.particles, torch.pow(10.0, log10_E), nu, rho, problem.scenario, problem.mpm,
+                       problem.num_frames)
+        r = render_sequence(problem, res.positions, res.F, problem.camera)
+    rgb = r.rgb.clamp(0, 1).numpy()
+    flow = r.flow.numpy()
+    obs = problem.frames
+    p = psnr(torch.from_numpy(rgb), torch.from_numpy(obs))
+    s = ssim(torch.from_numpy(rgb), torch.from_numpy(obs))
+    if problem.gt_flow is not None:
+        e = epe_metric(flow, problem.gt_flow, problem.gt_flow_valid)
+        ref = problem.gt_flow
+    else:
+        e = math.nan
+        ref = observed_flow if observed_flow is not None else np.zeros_like(flow)
+    err = np.linalg.norm(flow - ref, axis=-1)
+    return Evaluation(rgb, flow, float(e), float(p), float(s), err)
+
+
+def material_errors(problem: IdentifyProblem, fld: MaterialField) -> dict | None:
+    """RE of the deformable objects against ``scene.json``'s ground truth (every synthesized scene has it)."""
+    truth = {o.name: (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
+    if not truth:
+        return None
+    est = {o.name: (fld[o.id].E, fld[o.id].nu) for o in problem.truth.objects if not o.rigid}
+    return scene_relative_errors(est, truth)
+
+
+def _colormap(err: np.ndarray, vmax: float) -> np.ndarray:
+    import cv2
+
+    u8 = (np.clip(err / vmax, 0, 1) * 255).astype(np.uint8)
+    return cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)[..., ::-1].astype(np.float32) / 255.0
+
+
+def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: np.ndarray) -> np.ndarray:
+    """[T, H, 3W, 3] frames: observed | simulated | flow error (inferno, 0..1 px; last frame repeats)."""
+    T = observed.shape[0]
+    errs = [flow_error[min(t, flow_error.shape[0] - 1)] for t in range(T)] if flow_error.shape[0] else \
+        [np.zeros(observed.shape[1:3]) for _ in range(T)]
+    return np.stack([np.concatenate([observed[t], simulated[t], _colormap(errs[t], FLOW_ERROR_RANGE)], 1)
+                     for t in range(T)])
+
+
+def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: IdentifyResult, config: IdentifyConfig,
+                  init_name: str, video: bool = True, evaluate_init: bool = False) -> dict:
+    """Evaluate the identified field and write the run folder (see the module docstring). Returns metrics."""
+    from endogsim.io.video_writer import write_video
+
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    result.field.meta = {**result.field.meta, "identified_from": str(problem.folder), "init": init_name}
+    result.field.save(run / "materials_identified.json")
+    result.init_field.save(run / "materials_init.json")
+    write_json_atomic(run / "history.json", result.history)
+    obs_flow = None
+    if (run / "observed_flow.npz").is_file():
+        with np.load(run / "observed_flow.npz") as d:
+            obs_flow = d["flow"]
+    ev = evaluate_field(problem, result.field, obs_flow)
+    re = material_errors(problem, result.field)
+    metrics: dict = {
+        "scene": problem.truth.name, "folder": str(problem.folder), "init": init_name,
+        "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
+        "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
+        "stopped": result.stopped, "seconds": result.seconds,
+        "epe": ev.epe, "psnr": ev.psnr, "ssim": ev.ssim,
+        "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid}
+                      for r in result.field.records},
+        "units": {"E": "Pa", "density": "kg/m^3", "epe": "px", "psnr": "dB", "seconds": "s"},
+        "notes": result.notes, "config": config.to_json(),
+    }
+    if re is not None:
+        metrics.update({k: v for k, v in re.items() if k != "objects"})
+        metrics["re_objects"] = re["objects"]
+    if evaluate_init:
+        ev0 = evaluate_field(problem, result.init_field, obs_flow)
+        re0 = material_errors(problem, result.init_field)
+        metrics["init_metrics"] = {"epe": ev0.epe, "psnr": ev0.psnr, "ssim": ev0.ssim,
+                                   **({"re_mean": re0["re_mean"]} if re0 else {})}
+    write_json_atomic(run / "metrics.json", metrics)
+
+    names = {str(o.id): o.name for o in problem.truth.objects}
+    truth = {str(o.id): (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
+    if result.history:
+        plot_loss(result.history, run / "loss.png", result.best_iteration, title=f"{problem.truth.name}: {config.loss} loss")
+        plot_parameters(result.history, run / "parameters.png", names, truth)
+    if video:
+        write_video(comparison_frames(problem.frames, ev.rgb, ev.flow_error), run / "comparison.mp4", fps=10)
+    lines = [f"EndoGSim identification of {problem.folder} ({problem.truth.name})",
+             f"init {init_name}; loss {config.loss}; grad mode {config.grad_mode}; "
+             f"{'global material' if config.global_material else 'object-wise material field'}",
+             f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
+             f"{result.seconds:.1f} s"]
+    for r in result.field.records:
+        kind = "rigid (frozen)" if r.rigid else f"identified from E {result.init_field[r.object_id].E:.4g} Pa, nu {result.init_field[r.object_id].nu:.3f}"
+        lines.append(f"  {r.name} (id {r.object_id}): E = {r.E:.4g} Pa, nu = {r.nu:.3f}  [{kind}]")
+    if re is not None:
+        lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; mean {re['re_mean']:.3f}")
+    lines.append(f"EPE {ev.epe:.3f} px, PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
+    lines += [f"note: {n}" for n in result.notes]
+    tmp = run / "summary.txt.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(run / "summary.txt")
+    return metrics

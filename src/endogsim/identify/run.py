@@ -1,0 +1,77 @@
+"""One call from a scene folder to a finished run folder: :func:`run_identify` (used by the CLI and the bench)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from endogsim.errors import DataError
+from endogsim.identify.config import IdentifyConfig
+from endogsim.identify.optimize import identify
+from endogsim.identify.problem import IdentifyProblem, load_problem
+from endogsim.identify.report import write_outputs
+from endogsim.materials.field import MaterialField
+
+__all__ = ["initial_field", "run_identify", "INIT_CHOICES"]
+
+INIT_CHOICES = ("manual", "prior", "mllm", "replay")
+
+
+def initial_field(problem: IdentifyProblem, init: str = "prior") -> tuple[MaterialField, bool]:
+    """The starting material field and whether it is an explicit user request (a file: strict stability).
+
+    Args:
+        init: "manual" | "prior" | "mllm" | "replay" (see :func:`endogsim.materials.initialise_materials`), or
+            a material-field JSON file (e.g. ``materials.json`` of ``endogsim materials init``).
+    """
+    from endogsim.materials import MaterialInitConfig, initialise_materials
+
+    if init in INIT_CHOICES:
+        scene = None
+        if init in ("mllm", "replay"):
+            from endogsim.io.scene import Scene
+
+            T = problem.num_frames
+            scene = Scene(frames=problem.frames, times=np.arange(T) * problem.mpm.frame_dt,
+                          K=problem.camera.K.double().numpy(), object_masks=problem.object_masks,
+                          labels=problem.labels, source=str(problem.folder))
+        return initialise_materials(problem.labels, MaterialInitConfig(backend=init), scene=scene), False
+    path = Path(init)
+    if not path.is_file():
+        raise DataError(f"--init {init!r} is neither one of {', '.join(INIT_CHOICES)} nor a material JSON file")
+    return MaterialField.load(path), True
+
+
+def run_identify(
+    scene: str | Path,
+    out: str | Path,
+    init: str = "prior",
+    config: IdentifyConfig | None = None,
+    resume: bool = True,
+    progress: Callable[[int, int, dict], None] | None = None,
+    video: bool = True,
+    evaluate_init: bool = False,
+    problem: IdentifyProblem | None = None,
+) -> dict:
+    """Identify the materials of a scene folder and write the run folder ``out``; returns metrics.json's dict.
+
+    Args:
+        scene: a scene folder (``endogsim synth`` layout).
+        out: run folder (created; a checkpoint there is resumed unless ``resume`` is False).
+        init: initialiser or material JSON file (see :func:`initial_field`).
+        config: identification options.
+        progress: callback(iteration, iters, info).
+        video: write comparison.mp4.
+        evaluate_init: also score the initial materials (metrics["init_metrics"]).
+        problem: an already loaded problem for ``scene`` (saves the loading).
+    """
+    cfg = config or IdentifyConfig()
+    out = Path(out)
+    if not resume and (out / "checkpoint.pt").is_file():
+        (out / "checkpoint.pt").unlink()
+    pb = problem or load_problem(scene, frames=cfg.frames, device=cfg.device)
+    fld, strict = initial_field(pb, init)
+    result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict)
+    return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)

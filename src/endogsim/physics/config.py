@@ -1,0 +1,200 @@
+"""Typed configuration of a simulation: numerics (:class:`MPMConfig`) and the world (:class:`Scenario`).
+
+Every quantity here is in physical units (metres, seconds, kg, Pa) and world coordinates; the simulator
+converts them to sim-box units in :mod:`endogsim.physics.units`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+
+from endogsim.errors import SimulationError
+from endogsim.physics.units import SimBox
+
+MaterialModelName = Literal["fixed_corotated", "neo_hookean"]
+GradMode = Literal["last_substep", "frame", "full"]
+
+
+@dataclass
+class MPMConfig:
+    """Numerics of the MLS-MPM solver.
+
+    Attributes:
+        grid_res: grid cells per axis over the sim box (paper: 50).
+        frame_dt: time between two output (rendered) frames, seconds (paper: 25 x 2e-4 = 5e-3).
+        substeps_per_frame: the least number of substeps per frame (paper: 25). More are taken when the
+            CFL condition asks for them (dt = None) .
+        dt: explicit substep in seconds, or None to choose it from the CFL condition. An explicit dt above
+            the stable limit is refused with :class:`SimulationError` giving the limit.
+        max_substeps_per_frame: refuse materials that would need more substeps than this (e.g. E = 1e12 Pa).
+        material_model: "fixed_corotated" (the paper's / PhysGaussian's jelly) or "neo_hookean".
+        yield_stress: von Mises yield stress (Pa) for plasticity (F = F^E F^P), or None for pure elasticity.
+        cfl_number: C in dt <= C dx / c_p (0.3 to 1 is stable for explicit MPM).
+        damping: grid velocity damping rate (1/s); v *= exp(-damping dt) each substep.
+        wall: grid domain walls: "slip" (separating: outward normal velocity removed) or "sticky" (v = 0).
+        wall_padding: wall thickness in grid cells (3 keeps every quadratic stencil inside the grid).
+        device: Warp device, "cpu" or "cuda" / "cuda:0".
+    """
+
+    grid_res: int = 50
+    frame_dt: float = 25 * 2e-4
+    substeps_per_frame: int = 25
+    dt: float | None = None
+    max_substeps_per_frame: int = 4000
+    material_model: MaterialModelName = "fixed_corotated"
+    yield_stress: float | None = None
+    cfl_number: float = 0.5
+    damping: float = 0.0
+    wall: Literal["slip", "sticky"] = "slip"
+    wall_padding: int = 3
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if not (8 <= int(self.grid_res) <= 1024):
+            raise SimulationError(f"MPMConfig.grid_res = {self.grid_res} must lie in [8, 1024]")
+        if not (self.frame_dt > 0 and np.isfinite(self.frame_dt)):
+            raise SimulationError(f"MPMConfig.frame_dt = {self.frame_dt} s must be > 0")
+        if self.substeps_per_frame < 1:
+            raise SimulationError(f"MPMConfig.substeps_per_frame = {self.substeps_per_frame} must be >= 1")
+        if self.dt is not None and not (self.dt > 0 and np.isfinite(self.dt)):
+            raise SimulationError(f"MPMConfig.dt = {self.dt} s must be > 0")
+        if self.material_model not in ("fixed_corotated", "neo_hookean"):
+            raise SimulationError(f"MPMConfig.material_model {self.material_model!r} is not fixed_corotated|neo_hookean")
+        if self.yield_stress is not None and not self.yield_stress > 0:
+            raise SimulationError(f"MPMConfig.yield_stress = {self.yield_stress} Pa must be > 0 (or None)")
+        if not (0 < self.cfl_number <= 1.0):
+            raise SimulationError(f"MPMConfig.cfl_number = {self.cfl_number} must lie in (0, 1]")
+        if self.damping < 0:
+            raise SimulationError(f"MPMConfig.damping = {self.damping} 1/s must be >= 0")
+        if self.wall not in ("slip", "sticky"):
+            raise SimulationError(f"MPMConfig.wall {self.wall!r} is not slip|sticky")
+        if not (2 <= self.wall_padding <= self.grid_res // 4):
+            raise SimulationError(f"MPMConfig.wall_padding = {self.wall_padding} cells must lie in [2, grid_res/4]")
+
+
+@dataclass
+class Anchor:
+    """A boundary condition on a region: an axis-aligned world box and/or a particle mask.
+
+    Kinds:
+      - "fixed": particles that start in the box (or are in ``particle_mask``) are held at their initial
+        position; grid nodes in the box get v = 0.
+      - "sticky": grid nodes in the box get v = 0 (particles there stop, but are not pinned exactly).
+      - "slip": grid nodes in the box lose the velocity component along ``normal`` (a frictionless support).
+
+    Attributes:
+        lo, hi: world box corners (metres), or None with a particle mask.
+        kind: "fixed" | "sticky" | "slip".
+        normal: unit normal (world) for "slip".
+        particle_mask: [P] bool, particles to pin ("fixed" only).
+    """
+
+    lo: tuple[float, float, float] | None = None
+    hi: tuple[float, float, float] | None = None
+    kind: Literal["fixed", "sticky", "slip"] = "fixed"
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    particle_mask: torch.Tensor | np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("fixed", "sticky", "slip"):
+            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip")
+        if (self.lo is None) != (self.hi is None):
+            raise SimulationError("Anchor needs both lo and hi (or neither, with a particle_mask)")
+        if self.lo is None and self.particle_mask is None:
+            raise SimulationError("Anchor needs a box (lo, hi) or a particle_mask")
+        if self.particle_mask is not None and self.kind != "fixed":
+            raise SimulationError("Anchor.particle_mask is only meaningful for kind 'fixed'")
+        if self.kind == "slip" and float(np.linalg.norm(self.normal)) < 1e-9:
+            raise SimulationError("Anchor.normal must be non-zero for a slip anchor")
+
+
+@dataclass
+class ExternalForce:
+    """A body acceleration on a region over a time window, or an impulse.
+
+    Attributes:
+        acceleration: world vector (m/s^2) added to the particles of the region while t_start <= t < t_end;
+            for an impulse (``impulse=True``) it is the velocity change (m/s) applied once at t_start.
+        lo, hi: world box (metres) selecting the particles by their initial position, or None with a mask.
+        particle_mask: [P] bool particles the force acts on.
+        t_start, t_end: time window (s) from the start of the rollout.
+        impulse: see ``acceleration``.
+    """
+
+    acceleration: tuple[float, float, float]
+    lo: tuple[float, float, float] | None = None
+    hi: tuple[float, float, float] | None = None
+    particle_mask: torch.Tensor | np.ndarray | None = None
+    t_start: float = 0.0
+    t_end: float = float("inf")
+    impulse: bool = False
+
+    def __post_init__(self) -> None:
+        if self.lo is None and self.particle_mask is None:
+            raise SimulationError("ExternalForce needs a box (lo, hi) or a particle_mask")
+        if not self.t_end > self.t_start and not self.impulse:
+            raise SimulationError(f"ExternalForce window [{self.t_start}, {self.t_end}) s is empty")
+
+
+@dataclass
+class RigidCollider:
+    """A kinematic rigid instrument: a set of points that follows a prescribed trajectory and pushes tissue.
+
+    Give either per-frame rigid transforms of rest points, or per-frame positions of every point. Between
+    two frames the points move at constant velocity. Grid nodes within ``radius`` of a collider point take
+    the collider velocity (sticky contact: pressing and grasping alike). The collider is not moved by the
+    tissue (it is kinematic).
+
+    Attributes:
+        points: [Pc, 3] rest points (metres, world) -- with ``transforms``.
+        transforms: [T, 4, 4] world rigid transforms per output frame applied to ``points``
+            (transforms[0] is usually the identity).
+        positions: [T, Pc, 3] world positions per output frame (instead of points + transforms).
+        radius: contact radius around each point (metres); default: one grid cell.
+    """
+
+    points: torch.Tensor | np.ndarray | None = None
+    transforms: torch.Tensor | np.ndarray | None = None
+    positions: torch.Tensor | np.ndarray | None = None
+    radius: float | None = None
+
+    def trajectory(self) -> torch.Tensor:
+        """[T, Pc, 3] world positions per frame (float64)."""
+        if self.positions is not None:
+            pos = torch.as_tensor(self.positions, dtype=torch.float64)
+        elif self.points is not None and self.transforms is not None:
+            pts = torch.as_tensor(self.points, dtype=torch.float64)
+            T = torch.as_tensor(self.transforms, dtype=torch.float64)
+            if T.ndim != 3 or T.shape[1:] != (4, 4):
+                raise SimulationError(f"RigidCollider.transforms has shape {tuple(T.shape)}, expected (T, 4, 4)")
+            pos = torch.einsum("tij,pj->tpi", T[:, :3, :3], pts) + T[:, None, :3, 3]
+        else:
+            raise SimulationError("RigidCollider needs positions [T, Pc, 3] or points [Pc, 3] + transforms [T, 4, 4]")
+        if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[1] == 0:
+            raise SimulationError(f"RigidCollider positions have shape {tuple(pos.shape)}, expected (T, Pc>0, 3)")
+        if not torch.isfinite(pos).all():
+            raise SimulationError("RigidCollider trajectory holds NaN/inf")
+        return pos
+
+
+@dataclass
+class Scenario:
+    """Everything about the world a simulation needs besides particles and materials.
+
+    Attributes:
+        box: the sim box (world cube covered by the grid).
+        gravity: world gravity vector (m/s^2); (0, 9.81, 0) points down the image for an OpenCV camera.
+        anchors: boundary conditions on regions (see :class:`Anchor`).
+        forces: external accelerations / impulses (see :class:`ExternalForce`).
+        colliders: kinematic rigid instruments (see :class:`RigidCollider`).
+    """
+
+    box: SimBox
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    anchors: list[Anchor] = field(default_factory=list)
+    forces: list[ExternalForce] = field(default_factory=list)
+    colliders: list[RigidCollider] = field(default_factory=list)

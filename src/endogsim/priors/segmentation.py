@@ -1,0 +1,194 @@
+"""Segmentation priors: which pixel belongs to which object (tissue ids, tool ids), per frame.
+
+Entry point: :func:`segment_scene` returns a :class:`Segmentation` (object-id masks + label table).
+Methods:
+
+* ``"dataset"``: the scene's own masks (EndoNeRF tool masks, CholecSeg8K classes, procedural ids).
+* ``"sam2"``: SAM 2 / Surgical-SAM-2 video propagation (``sam2`` package) with a *local* checkpoint and
+  model config. It is prompted on the first frame with the boxes of the offline tool detector below and
+  tracks every box through the video; each track becomes one tool object (``tool_1``, ``tool_2``, ...).
+* ``"fallback"``: offline tool detection by colour. Surgical instruments (da Vinci shafts, laparoscopic
+  graspers and hooks) are grey or metallic: low saturation, mid-to-high value, unlike tissue (red, pink,
+  yellow, all saturated). :func:`grey_tool_mask` thresholds HSV, drops small specular highlights with a
+  morphological opening and keeps connected components above a minimum area. Crude (white fat, glare and
+  smoke are grey too): a warning says so.
+* ``"auto"``: dataset masks when present, else the fallback.
+
+Every object gets a stable integer id and a name; fallback/SAM 2 tables use id 0 ``tissue`` and tool ids
+from 1, as the EndoNeRF table (:mod:`endogsim.io.labels`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from endogsim.errors import DataError, ModelError
+from endogsim.io.labels import endonerf_labels
+from endogsim.io.scene import ObjectLabel
+
+__all__ = ["Segmentation", "segment_scene", "grey_tool_mask", "GreyToolConfig", "sam2_segmentation",
+           "SEG_METHODS"]
+
+SEG_METHODS = ("auto", "dataset", "sam2", "fallback")
+
+
+@dataclass
+class Segmentation:
+    """Object-id masks for a sequence.
+
+    Attributes:
+        masks: [T, H, W] int32 object ids; -1 where unlabelled.
+        labels: id -> :class:`ObjectLabel` (name, is_tool, klass).
+        source: "dataset", "sam2" or "fallback".
+    """
+
+    masks: np.ndarray
+    labels: dict[int, ObjectLabel]
+    source: str
+
+
+@dataclass(frozen=True)
+class GreyToolConfig:
+    """Thresholds of the colour-based tool detector (HSV with S, V in [0, 1]).
+
+    A pixel is a tool candidate when it is bright enough and either grey (saturation below
+    ``max_saturation``) or cool-coloured (hue in ``cool_hue_deg``, saturation below
+    ``max_saturation_cool``): instruments under the endoscope's white light look grey or bluish-grey,
+    tissue is red, pink, orange or yellow (pale, fatty or blanched tissue has a low saturation but a
+    warm hue, so it fails both tests).
+
+    Attributes:
+        max_saturation: grey test: saturation below this.
+        cool_hue_deg: (lo, hi) hue range in degrees of the cool-colour test (cyan to blue-violet).
+        max_saturation_cool: cool-colour test: saturation below this.
+        min_value: candidates must be brighter than this (dark shadows are not tools).
+        open_frac: opening kernel size as a fraction of the image width (removes glints, thin vessels).
+        close_frac: closing kernel size, same units (fills tool texture, text on the shaft).
+        min_area_frac: components smaller than this fraction of the image are dropped.
+        dilate_frac: the final mask is grown by this fraction of the width, so tool borders (dark
+            edges, motion blur, shadows at the contact) stay out of the tissue loss.
+    """
+
+    max_saturation: float = 0.15
+    cool_hue_deg: tuple[float, float] = (170.0, 270.0)
+    max_saturation_cool: float = 0.6
+    min_value: float = 0.20
+    open_frac: float = 0.012
+    close_frac: float = 0.02
+    min_area_frac: float = 0.004
+    dilate_frac: float = 0.01
+
+
+def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig()) -> np.ndarray:
+    """Offline instrument detector: [H, W] bool, True on grey, low-saturation regions.
+
+    Args:
+        frame: [H, W, 3] RGB, float in [0, 1] or uint8.
+        config: thresholds (see :class:`GreyToolConfig`).
+    """
+    import cv2
+
+    f = np.asarray(frame)
+    if f.ndim != 3 or f.shape[-1] != 3:
+        raise DataError(f"grey_tool_mask expects an [H, W, 3] RGB frame, got shape {f.shape}")
+    if f.dtype != np.uint8:
+        f = (np.clip(f, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    hsv = cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2HSV).astype(np.float32)
+    hue, s, v = hsv[..., 0] * 2.0, hsv[..., 1] / 255.0, hsv[..., 2] / 255.0  # OpenCV stores hue / 2
+    lo, hi = config.cool_hue_deg
+    cool = (hue >= lo) & (hue <= hi) & (s < config.max_saturation_cool)
+    raw = ((s < config.max_saturation) | cool) & (v > config.min_value)
+    h, w = raw.shape
+
+    def kernel(frac: float) -> np.ndarray:
+        k = max(1, int(round(frac * w)) | 1)
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+
+    m = cv2.morphologyEx(raw.astype(np.uint8), cv2.MORPH_OPEN, kernel(config.open_frac))
+    m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, kernel(config.close_frac))
+    n, cc, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    keep = np.zeros(n, dtype=bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= config.min_area_frac * h * w
+    m = keep[cc].astype(np.uint8)
+    if config.dilate_frac > 0:
+        m = cv2.dilate(m, kernel(config.dilate_frac))
+    return m.astype(bool)
+
+
+def _fallback(scene, config: GreyToolConfig) -> Segmentation:
+    tool = np.stack([grey_tool_mask(f, config) for f in scene.frames])
+    masks = np.where(tool, 1, 0).astype(np.int32)
+    return Segmentation(masks, endonerf_labels(True), "fallback")
+
+
+def sam2_segmentation(frames: np.ndarray, checkpoint: str | Path | None, model_config: str | None,
+                      device: str = "cpu", prompt_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
+    """Tool masks tracked by SAM 2 / Surgical-SAM-2 from a local checkpoint.
+
+    Prompts: one box per connected component of :func:`grey_tool_mask` on the first frame.
+
+    Args:
+        frames: [T, H, W, 3] float RGB in [0, 1].
+        checkpoint: local ``.pt`` checkpoint (SAM 2 or Surgical-SAM-2 weights).
+        model_config: the matching Hydra config name of the ``sam2`` package, e.g.
+            ``configs/sam2.1/sam2.1_hiera_s.yaml``.
+    """
+    if checkpoint is None or not Path(checkpoint).is_file():
+        raise ModelError(f"SAM 2 segmentation needs a local checkpoint (--seg-checkpoint PATH to a SAM 2 / "
+                         f"Surgical-SAM-2 .pt file) and --seg-config; got {checkpoint!r}. Nothing is downloaded.")
+    if not model_config:
+        raise ModelError("SAM 2 segmentation needs --seg-config (the sam2 model config matching the checkpoint, "
+                         "e.g. configs/sam2.1/sam2.1_hiera_s.yaml)")
+    try:
+        import cv2
+        import tempfile
+
+        import torch
+        from sam2.build_sam import build_sam2_video_predictor  # type: ignore[import-not-found]
+    except ImportError as exc:
+        raise ModelError(f"SAM 2 segmentation needs the `sam2` package (github.com/facebookresearch/sam2): {exc}") from None
+    first = grey_tool_mask(frames[0], prompt_config).astype(np.uint8)
+    n, cc, stats, _ = cv2.connectedComponentsWithStats(first, connectivity=8)
+    if n <= 1:
+        raise DataError("SAM 2 prompts come from the grey-tool detector, which found no instrument in frame 0")
+    predictor = build_sam2_video_predictor(model_config, str(checkpoint), device=device)
+    T, H, W, _ = frames.shape
+    masks = np.zeros((T, H, W), dtype=np.int32)
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, f in enumerate(frames):  # the video predictor reads a folder of JPEG frames
+            cv2.imwrite(str(Path(tmp) / f"{i:05d}.jpg"), (np.clip(f[..., ::-1], 0, 1) * 255).astype(np.uint8))
+        with torch.inference_mode():
+            state = predictor.init_state(video_path=tmp)
+            for k in range(1, n):
+                x, y, w, h = stats[k, :4]
+                predictor.add_new_points_or_box(state, frame_idx=0, obj_id=k, box=np.array([x, y, x + w, y + h]))
+            for t, obj_ids, logits in predictor.propagate_in_video(state):
+                for j, oid in enumerate(obj_ids):
+                    masks[t][(logits[j, 0] > 0).cpu().numpy()] = int(oid)
+    labels = {0: ObjectLabel(0, "tissue", False, "unknown_tissue")}
+    labels.update({k: ObjectLabel(k, f"tool_{k}", True, "instrument") for k in range(1, n)})
+    return Segmentation(masks, labels, "sam2")
+
+
+def segment_scene(scene, method: str = "auto", checkpoint: str | Path | None = None,
+                  model_config: str | None = None, device: str = "cpu",
+                  fallback_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
+    """Object-id masks for every frame of ``scene`` (see the module docstring for ``method``)."""
+    if method not in SEG_METHODS:
+        raise ModelError(f"unknown segmentation method {method!r}; use one of {', '.join(SEG_METHODS)}")
+    if method == "auto":
+        method = "dataset" if scene.object_masks is not None else "fallback"
+    if method == "dataset":
+        if scene.object_masks is None:
+            raise DataError(f"{scene.source}: segmentation method 'dataset' but the scene has no masks")
+        return Segmentation(scene.object_masks.astype(np.int32), dict(scene.labels), "dataset")
+    if method == "sam2":
+        return sam2_segmentation(scene.frames, checkpoint, model_config, device, fallback_config)
+    warnings.warn(f"{scene.source}: no masks and no segmentation model given; detecting instruments by "
+                  "colour (grey, low saturation). Expect errors on white fat, glare and smoke; supply masks/ "
+                  "or --seg-method sam2 with --seg-checkpoint.", stacklevel=2)
+    return _fallback(scene, fallback_config)

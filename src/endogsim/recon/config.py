@@ -1,0 +1,195 @@
+"""Typed configuration of the 4D reconstruction, loadable from JSON or TOML.
+
+A config file holds any subset of the fields below (unknown keys are refused); the nested
+``[deformation]`` table sets :class:`~endogsim.recon.deformation.DeformationConfig`. Example TOML::
+
+    iters = 2000
+    resolution_scale = 0.5
+    lambda_dssim = 0.2
+    [deformation]
+    feature_dim = 16
+    resolution = [32, 32, 32]
+
+Defaults are for a CPU (half resolution, a few tens of thousands of Gaussians, ~3000 iterations);
+:func:`default_config` ("cuda") switches to full resolution and the Endo-4DGS schedule.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from endogsim.errors import DataError
+from endogsim.recon.deformation import DeformationConfig
+
+__all__ = ["ReconConfig", "default_config", "load_config"]
+
+
+@dataclass
+class ReconConfig:
+    """Every knob of :func:`endogsim.recon.train.reconstruct`.
+
+    Data and priors:
+        resolution_scale: image scale used for training (0.5 = half the stored width and height).
+        max_frames: use only the first frames (None = all).
+        depth_method / depth_weights: see :mod:`endogsim.priors.depth` ("auto": dataset depth, else the
+            offline bowl fallback).
+        seg_method / seg_checkpoint / seg_config: see :mod:`endogsim.priors.segmentation`.
+        working_distance: metres, for the depth fallback and model-depth rescaling.
+        tool_depth_factor: with non-metric depth, tools start at this fraction of the tissue depth
+            (instruments sit between the camera and the tissue).
+    Schedule:
+        iters: total iterations (coarse + deformation).
+        coarse_fraction: share of ``iters`` spent on the static coarse stage.
+        seed: RNG seed (frame order, initial planes).
+        checkpoint_every: iterations between checkpoints (resume after an interruption).
+        eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
+            the evaluation time is not counted as training time.
+    Initialisation:
+        init_stride: back-project every ``init_stride``-th pixel in x and y.
+        init_opacity: initial opacity of every Gaussian.
+        sh_degree: SH degree of the colours (0: a fixed endoscope sees each point from one direction).
+    Losses (weights):
+        lambda_dssim: D-SSIM term (1 - SSIM) next to L1.
+        lambda_depth: L1 on depth / median depth, only with metric depth (dataset).
+        lambda_plane_tv, lambda_time_smooth, lambda_time_l1: HexPlane regularisers.
+        lambda_tool_alpha: tool-model alpha vs tool mask.
+        lambda_pose_smooth: frame-to-frame smoothness of tool poses.
+        tool_every: optimise the tool model every n-th iteration (it costs a second render).
+    Learning rates (Adam; positions scale with the scene extent, per 3DGS):
+        lr_means, lr_means_final: per unit extent, decayed exponentially over the run.
+        lr_sh, lr_opacity, lr_scales, lr_quats: 3DGS values.
+        lr_grid, lr_mlp: HexPlane planes and MLP heads (Endo-4DGS values), decayed by 10x.
+        lr_tool_rot (rad), lr_tool_trans (per unit extent).
+    Densification (3DGS):
+        densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
+        (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians.
+    Device:
+        device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "gsplat").
+    """
+
+    resolution_scale: float = 0.5
+    max_frames: int | None = None
+    depth_method: str = "auto"
+    depth_weights: str | None = None
+    seg_method: str = "auto"
+    seg_checkpoint: str | None = None
+    seg_config: str | None = None
+    working_distance: float = 0.07
+    tool_depth_factor: float = 0.85
+
+    iters: int = 3000
+    coarse_fraction: float = 0.1
+    seed: int = 0
+    checkpoint_every: int = 250
+    eval_every: int = 0
+
+    init_stride: int = 2
+    init_opacity: float = 0.7
+    sh_degree: int = 0
+
+    lambda_dssim: float = 0.2
+    lambda_depth: float = 0.1
+    lambda_plane_tv: float = 2e-4
+    lambda_time_smooth: float = 1e-3
+    lambda_time_l1: float = 1e-4
+    lambda_tool_alpha: float = 0.2
+    lambda_pose_smooth: float = 1.0
+    tool_every: int = 2
+
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_sh: float = 2.5e-3
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_grid: float = 1.6e-3
+    lr_mlp: float = 1.6e-4
+    lr_tool_rot: float = 2e-3
+    lr_tool_trans: float = 2e-3
+
+    densify_from: float = 0.05
+    densify_until: float = 0.6
+    densify_every: int = 100
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    max_gaussians: int = 60_000
+
+    device: str = "auto"
+    backend: str = "auto"
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def validate(self) -> "ReconConfig":
+        if not 0 < self.resolution_scale <= 4:
+            raise DataError(f"resolution_scale {self.resolution_scale} must be in (0, 4]")
+        if self.iters < 1:
+            raise DataError(f"iters {self.iters} must be >= 1")
+        if not 0 <= self.coarse_fraction <= 1:
+            raise DataError(f"coarse_fraction {self.coarse_fraction} must be in [0, 1]")
+        if self.init_stride < 1:
+            raise DataError(f"init_stride {self.init_stride} must be >= 1")
+        if not 0 < self.init_opacity < 1:
+            raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise DataError(f"device {self.device!r} must be 'auto', 'cpu' or 'cuda'")
+        return self
+
+    @staticmethod
+    def from_dict(data: dict, base: "ReconConfig | None" = None, source: str = "config") -> "ReconConfig":
+        cfg = base or ReconConfig()
+        names = {f.name for f in fields(ReconConfig)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise DataError(f"{source}: unknown reconstruction option(s) {unknown}")
+        values = {k: v for k, v in data.items() if k != "deformation"}
+        deform = asdict(cfg.deformation)
+        if "deformation" in data:
+            dn = {f.name for f in fields(DeformationConfig)}
+            bad = sorted(set(data["deformation"]) - dn)
+            if bad:
+                raise DataError(f"{source}: unknown deformation option(s) {bad}")
+            deform.update(data["deformation"])
+        deform["resolution"] = tuple(deform["resolution"])
+        deform["multires"] = tuple(deform["multires"])
+        merged = {**asdict(cfg), **values}
+        merged["deformation"] = DeformationConfig(**deform)
+        return ReconConfig(**merged).validate()
+
+
+def default_config(device: str = "cpu") -> ReconConfig:
+    """Defaults for ``device``: "cpu" (half resolution, 3000 iterations) or "cuda" (full resolution,
+    Endo-4DGS-like 1000 coarse + 6000 fine iterations, a larger HexPlane)."""
+    if device == "cuda":
+        return ReconConfig(resolution_scale=1.0, iters=7000, coarse_fraction=1 / 7, init_stride=2,
+                           max_gaussians=300_000, device="cuda", checkpoint_every=1000,
+                           deformation=DeformationConfig(feature_dim=32, resolution=(64, 64, 64)))
+    return ReconConfig(device="cpu")
+
+
+def load_config(path: str | Path | None = None, defaults_for: str = "cpu", **overrides) -> ReconConfig:
+    """The defaults for device ``defaults_for``, then a JSON/TOML file, then ``overrides`` (None ignored)."""
+    cfg = default_config(defaults_for)
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise DataError(f"{path}: config file does not exist")
+        text = path.read_text()
+        try:
+            if path.suffix.lower() == ".toml":
+                import tomllib
+
+                data = tomllib.loads(text)
+            else:
+                data = json.loads(text)
+        except Exception as exc:  # json.JSONDecodeError / tomllib.TOMLDecodeError
+            raise DataError(f"{path}: cannot parse config ({exc})") from None
+        if not isinstance(data, dict):
+            raise DataError(f"{path}: config must be a table/object of options")
+        cfg = ReconConfig.from_dict(data, cfg, str(path))
+    over = {k: v for k, v in overrides.items() if v is not None}
+    return ReconConfig.from_dict(over, cfg, "command line") if over else cfg.validate()

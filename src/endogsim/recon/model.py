@@ -1,0 +1,154 @@
+"""A reconstructed 4D scene: canonical Gaussians + tissue deformation field + rigid tool motion.
+
+:func:`compose_at` is the one place that says how the pieces combine at a frame; training and the
+reloaded :class:`Reconstruction` both call it. :func:`load_reconstruction` reads a run folder written by
+:func:`endogsim.recon.train.reconstruct`.
+
+Run-folder files (all written atomically):
+
+=========================  ==================================================================
+``canonical.ply``          canonical Gaussians, 3DGS layout + ``object_id`` (tissue then tools)
+``frame0.ply``             the Gaussians at frame 0 (deformed tissue, tools at their frame-0 pose)
+``deformation.pt``         torch file: the deformation field (architecture + state dict), the tool
+                           motion state dict, frame times, camera, label table
+``tool_trajectories.json`` per tool: id, name, [T, 4, 4] canonical -> frame transforms (world metres)
+``tool_trajectories.npz``  the same arrays, ``object_<id>`` [T, 4, 4] and ``times`` [T] (seconds)
+``objects.json``           id -> name, is_tool, class
+``renders/test/*.png``     test-frame renders (tissue model); ``renders/test_full/`` with tools
+``metrics.json``           PSNR/SSIM (both protocols), training seconds, Gaussian count, priors used
+``config.json``            the configuration of the run
+``checkpoint.pt``          training state for resuming
+=========================  ==================================================================
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from endogsim.errors import ModelError
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
+from endogsim.io.scene import ObjectLabel
+from endogsim.recon.deformation import DeformationField
+from endogsim.recon.tools import ToolMotion
+
+__all__ = ["compose_at", "Reconstruction", "load_reconstruction", "save_torch_atomic"]
+
+
+def compose_at(tissue: Gaussians, tools: Gaussians | None, deformation: DeformationField | None,
+               motion: ToolMotion | None, time: float, frame: int, include_tools: bool = True) -> Gaussians:
+    """Gaussians of the scene at one frame.
+
+    Args:
+        tissue: canonical tissue Gaussians.
+        tools: canonical tool Gaussians (each tool in the pose of its reference frame) or None.
+        deformation: tissue deformation field (None: static tissue, the coarse stage).
+        motion: rigid tool motion (None: tools stay in their canonical pose).
+        time: frame time (seconds) for the deformation field.
+        frame: frame index for the tool poses.
+        include_tools: append the tool Gaussians.
+    """
+    g = deformation(tissue, time) if deformation is not None else tissue
+    if include_tools and tools is not None and len(tools) > 0:
+        moved = motion.apply(tools, frame) if motion is not None else tools
+        g = Gaussians.concat([g, moved])
+    return g
+
+
+def save_torch_atomic(obj, path: str | os.PathLike) -> Path:
+    """``torch.save`` through a temporary file and a rename (no half-written checkpoints)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".pt.tmp")
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+@dataclass
+class Reconstruction:
+    """A reloaded reconstruction.
+
+    Attributes:
+        tissue: canonical tissue Gaussians [N_tissue].
+        tools: canonical tool Gaussians [N_tool] (may be empty).
+        deformation: the tissue deformation field.
+        motion: rigid tool motion (None without tools).
+        times: [T] frame times (seconds).
+        camera: the camera of the training resolution.
+        labels: object table.
+    """
+
+    tissue: Gaussians
+    tools: Gaussians
+    deformation: DeformationField
+    motion: ToolMotion | None
+    times: torch.Tensor
+    camera: Camera
+    labels: dict[int, ObjectLabel] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.times.shape[0])
+
+    @torch.no_grad()
+    def gaussians_at(self, frame: int, include_tools: bool = True) -> Gaussians:
+        """All Gaussians at frame ``frame`` (object ids preserved)."""
+        if not 0 <= frame < self.num_frames:
+            raise ModelError(f"frame {frame} outside 0..{self.num_frames - 1}")
+        return compose_at(self.tissue, self.tools, self.deformation, self.motion, float(self.times[frame]), frame,
+                          include_tools)
+
+    def tool_transforms(self) -> dict[int, torch.Tensor]:
+        """Object id -> [T, 4, 4] canonical -> frame rigid transforms (world metres)."""
+        if self.motion is None:
+            return {}
+        M = self.motion.transforms().detach()
+        return {oid: M[k] for k, oid in enumerate(self.motion.tool_ids)}
+
+    @torch.no_grad()
+    def render(self, frame: int, include_tools: bool = True, backend: str = "auto"):
+        """:class:`~endogsim.gaussians.render.RenderOutput` of frame ``frame``."""
+        from endogsim.gaussians.render import render_gaussians
+
+        return render_gaussians(self.gaussians_at(frame, include_tools), self.camera, backend=backend)
+
+
+def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reconstruction:
+    """Read ``canonical.ply`` and ``deformation.pt`` from a run folder."""
+    from endogsim.gaussians.ply import read_ply
+
+    run = Path(run_dir)
+    for name in ("canonical.ply", "deformation.pt"):
+        if not (run / name).is_file():
+            raise ModelError(f"{run / name}: missing; is {run} a finished `endogsim reconstruct` run?")
+    g = read_ply(run / "canonical.ply")
+    data = torch.load(run / "deformation.pt", map_location="cpu", weights_only=False)
+    n_t = int(data["num_tissue"])
+    deformation = DeformationField.from_export(data["deformation"]).eval()
+    motion = None
+    if data.get("tool_motion") is not None:
+        tm = data["tool_motion"]
+        motion = ToolMotion(tm["tool_ids"], tm["state_dict"]["centers"], tm["state_dict"]["rotation"].shape[1])
+        motion.load_state_dict(tm["state_dict"])
+    cam = data["camera"]
+    camera = Camera(torch.as_tensor(cam["K"], dtype=torch.float32), int(cam["width"]), int(cam["height"]))
+    labels = {int(k): ObjectLabel(int(k), v["name"], bool(v["is_tool"]), v["class"]) for k, v in data["labels"].items()}
+    rec = Reconstruction(g.subset(torch.arange(n_t)), g.subset(torch.arange(n_t, len(g))), deformation, motion,
+                         torch.as_tensor(data["times"], dtype=torch.float32), camera, labels)
+    if device != "cpu":
+        rec.tissue, rec.tools = rec.tissue.to(device), rec.tools.to(device)
+        rec.deformation = rec.deformation.to(device)
+        rec.motion = rec.motion.to(device) if rec.motion is not None else None
+        rec.camera = rec.camera.to(device)
+    return rec

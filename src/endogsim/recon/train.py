@@ -1,0 +1,442 @@
+"""Training loop of the 4D reconstruction (Endo-4DGS style) and the run-folder outputs.
+
+Entry point: :func:`reconstruct` (data folder -> run folder, resumable). Stages:
+
+1. **coarse** (``coarse_fraction`` of the iterations): static tissue Gaussians fitted to random training
+   frames; tools already follow their per-frame rigid poses.
+2. **deformation**: the HexPlane field deforms the tissue per frame; densification (clone/split by
+   view-space gradient) and pruning (low opacity) run in the first part of the run.
+
+Losses per iteration (frame t drawn from a shuffled list of training frames):
+
+* tissue render vs frame t on tissue pixels only: L1 + ``lambda_dssim`` (1 - SSIM) (non-tissue pixels
+  are replaced by the target before SSIM, so they carry no gradient); with metric depth,
+  ``lambda_depth`` * L1(depth / median depth); HexPlane regularisers in the deformation stage.
+* every ``tool_every`` iterations, the tool model: tools rendered alone and composited over the (detached)
+  tissue render, L1 on tool pixels, plus ``lambda_tool_alpha`` * |alpha - tool mask| over the image
+  (the tools must cover their mask and nothing else) and pose smoothness.
+
+The tissue model never sees tool pixels, so instruments leave no smear in the tissue.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from endogsim.errors import DataError
+from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.render import render_gaussians
+from endogsim.recon.config import ReconConfig
+from endogsim.recon.data import PreparedScene, prepare_scene
+from endogsim.recon.deformation import DeformationField
+from endogsim.recon.init import initial_gaussians
+from endogsim.recon.model import compose_at, save_torch_atomic
+from endogsim.recon.params import GaussianParams
+from endogsim.recon.tools import ToolMotion
+
+__all__ = ["reconstruct", "Trainer", "Interrupted"]
+
+ProgressFn = Callable[[int, int, dict], None]
+
+
+class Interrupted(Exception):
+    """Raised by :meth:`Trainer.run` when ``stop_after`` iterations were done (the checkpoint is saved)."""
+
+
+def _resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DataError("device 'cuda' requested but CUDA is not available")
+    return torch.device(name)
+
+
+def _lr_exp(it: int, total: int, lr0: float, lr1: float) -> float:
+    """Log-linear decay from lr0 at 0 to lr1 at ``total``."""
+    f = min(max(it / max(total, 1), 0.0), 1.0)
+    return math.exp(math.log(lr0) * (1 - f) + math.log(lr1) * f)
+
+
+def _masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    return ((pred - gt).abs() * mask[..., None]).sum() / (mask.sum() * 3).clamp_min(1.0)
+
+
+class Trainer:
+    """State of one reconstruction run (built fresh or from a checkpoint).
+
+    Args:
+        prep: the prepared scene (frames, masks, depth, split).
+        config: the run configuration.
+        out_dir: run folder (checkpoints, outputs).
+    """
+
+    def __init__(self, prep: PreparedScene, config: ReconConfig, out_dir: Path) -> None:
+        self.prep, self.cfg, self.out = prep, config, Path(out_dir)
+        self.device = _resolve_device(config.device)
+        sc = prep.scene
+        dev = self.device
+        self.frames = torch.as_tensor(sc.frames, device=dev)
+        self.tissue_mask = torch.as_tensor(prep.tissue, device=dev, dtype=torch.float32)
+        self.tool_mask = torch.as_tensor(prep.tool, device=dev, dtype=torch.float32)
+        self.depth = torch.as_tensor(prep.depth, device=dev) if prep.depth_metric else None
+        self.times = torch.as_tensor(sc.times, dtype=torch.float32)
+        self.camera = Camera(torch.as_tensor(sc.K, dtype=torch.float32), sc.width, sc.height).to(dev)
+        self.n_coarse = int(round(config.iters * config.coarse_fraction))
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.history: list[dict] = []
+        self.gen = torch.Generator().manual_seed(config.seed)
+        self._order: list[int] = []
+
+    # ------------------------------------------------------------------ construction
+    def _gauss_lrs(self) -> dict[str, float]:
+        c = self.cfg
+        return {"means": c.lr_means * self.extent, "quats": c.lr_quats, "log_scales": c.lr_scales,
+                "opacity_logits": c.lr_opacity, "sh": c.lr_sh}
+
+    def _build_optimizers(self) -> None:
+        c = self.cfg
+        self.deform_opt = torch.optim.Adam([
+            {"params": list(self.deformation.hexplane.parameters()), "lr": c.lr_grid, "name": "grid"},
+            {"params": [p for n, p in self.deformation.named_parameters() if not n.startswith("hexplane.")],
+             "lr": c.lr_mlp, "name": "mlp"},
+        ], eps=1e-15)
+        self.motion_opt = None
+        if self.motion is not None:
+            self.motion_opt = torch.optim.Adam([
+                {"params": [self.motion.rotation], "lr": c.lr_tool_rot, "name": "rot"},
+                {"params": [self.motion.translation], "lr": c.lr_tool_trans * self.extent, "name": "trans"},
+            ])
+
+    def init_fresh(self) -> None:
+        c, prep = self.cfg, self.prep
+        torch.manual_seed(c.seed)
+        ini = initial_gaussians(prep, c.init_stride, c.init_opacity, c.sh_degree, c.tool_depth_factor)
+        if len(ini.tissue) == 0:
+            raise DataError(f"{prep.scene.source}: no tissue pixel with depth in the training frames")
+        lo = ini.tissue.means.min(0).values
+        hi = ini.tissue.means.max(0).values
+        pad = 0.15 * (hi - lo).max()
+        bounds = torch.stack([lo - pad, hi + pad])
+        self.extent = float((hi - lo).max())
+        self.init_info = {"tissue_gaussians": len(ini.tissue), "disoccluded_gaussians": ini.n_disoccluded,
+                          "tool_gaussians": len(ini.tools), "tool_ids": ini.tool_ids, "tool_ref_frames": ini.ref_frames}
+        self.tissue = GaussianParams(ini.tissue.to(self.device), self._gauss_lrs())
+        self.tools = GaussianParams(ini.tools.to(self.device), self._gauss_lrs()) if len(ini.tools) else None
+        t = self.times
+        self.deformation = DeformationField(c.deformation, bounds, (float(t[0]), float(t[-1]) if len(t) > 1 else 1.0),
+                                            len(t)).to(self.device)
+        self.motion = None
+        self.tool_visible = None
+        if ini.tool_ids:
+            self.motion = ToolMotion(ini.tool_ids, ini.centers, len(t), ini.init_translation).to(self.device)
+            with torch.no_grad():
+                self.motion.rotation.copy_(ini.init_rotation)
+            self.tool_visible = ini.visible
+        self._build_optimizers()
+
+    def state(self) -> dict:
+        return {
+            "iteration": self.iteration, "elapsed": self.elapsed, "extent": self.extent, "history": self.history,
+            "init_info": self.init_info, "config": self.cfg.to_dict(),
+            "tissue": self.tissue.state(), "tools": self.tools.state() if self.tools is not None else None,
+            "deformation": self.deformation.export(), "deform_opt": self.deform_opt.state_dict(),
+            "motion": None if self.motion is None else {"tool_ids": self.motion.tool_ids,
+                                                        "state_dict": self.motion.state_dict()},
+            "motion_opt": None if self.motion_opt is None else self.motion_opt.state_dict(),
+            "tool_visible": self.tool_visible, "gen": self.gen.get_state(), "order": list(self._order),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def load_state(self, st: dict) -> None:
+        self.iteration, self.elapsed, self.extent = st["iteration"], st["elapsed"], st["extent"]
+        self.history, self.init_info = st["history"], st["init_info"]
+        self.tissue = GaussianParams.from_state(st["tissue"], self._gauss_lrs()).to(self.device)
+        self.tools = GaussianParams.from_state(st["tools"], self._gauss_lrs()).to(self.device) if st["tools"] else None
+        self.deformation = DeformationField.from_export(st["deformation"]).to(self.device)
+        self.motion = None
+        if st["motion"] is not None:
+            sd = st["motion"]["state_dict"]
+            self.motion = ToolMotion(st["motion"]["tool_ids"], sd["centers"], sd["rotation"].shape[1])
+            self.motion.load_state_dict(sd)
+            self.motion = self.motion.to(self.device)
+        self.tool_visible = st["tool_visible"]
+        self._build_optimizers()
+        self.deform_opt.load_state_dict(st["deform_opt"])
+        if self.motion_opt is not None:
+            self.motion_opt.load_state_dict(st["motion_opt"])
+        self.gen.set_state(st["gen"])
+        self._order = list(st["order"])
+        torch.set_rng_state(st["torch_rng"])
+
+    def save_checkpoint(self) -> None:
+        save_torch_atomic(self.state(), self.out / "checkpoint.pt")
+
+    # ------------------------------------------------------------------ one iteration
+    def _next_frame(self) -> int:
+        if not self._order:
+            perm = torch.randperm(len(self.prep.train), generator=self.gen).tolist()
+            self._order = [self.prep.train[i] for i in perm]
+        return self._order.pop()
+
+    def _set_lrs(self) -> None:
+        c, it, total = self.cfg, self.iteration, self.cfg.iters
+        for gp in (self.tissue, self.tools):
+            if gp is not None:
+                gp.set_lr("means", _lr_exp(it, total, c.lr_means * self.extent, c.lr_means_final * self.extent))
+        fine_it = max(0, it - self.n_coarse)
+        fine_total = max(1, total - self.n_coarse)
+        for g in self.deform_opt.param_groups:
+            base = c.lr_grid if g["name"] == "grid" else c.lr_mlp
+            g["lr"] = _lr_exp(fine_it, fine_total, base, base * 0.1)
+
+    def step(self) -> dict:
+        c = self.cfg
+        fine = self.iteration >= self.n_coarse
+        t = self._next_frame()
+        time_t = float(self.times[t])
+        self._set_lrs()
+        gt = self.frames[t]
+        m = self.tissue_mask[t]
+        g = compose_at(self.tissue.gaussians(), None, self.deformation if fine else None, None, time_t, t, False)
+        if not g.means.is_leaf:
+            g.means.retain_grad()
+        out = render_gaussians(g, self.camera, backend=c.backend)
+        means2d = out.meta.get("means2d")
+        if means2d is not None and means2d.requires_grad and out.meta.get("backend") == "torch":
+            means2d.retain_grad()
+        loss = (1 - c.lambda_dssim) * _masked_l1(out.rgb, gt, m)
+        if c.lambda_dssim > 0:
+            filled = out.rgb * m[..., None] + gt * (1 - m[..., None])
+            loss = loss + c.lambda_dssim * (1 - ssim_map(filled, gt).mean())
+        if self.depth is not None and c.lambda_depth > 0:
+            d = self.depth[t]
+            valid = (m > 0) & (d > 0) & (out.alpha > 0.5)
+            if valid.any():
+                loss = loss + c.lambda_depth * (out.depth[valid] - d[valid]).abs().mean() / d[valid].median()
+        if fine:
+            loss = loss + self.deformation.regularization(c.lambda_plane_tv, c.lambda_time_smooth, c.lambda_time_l1)
+        loss.backward()
+        self._accumulate_view_gradient(g, out, means2d)
+        info = {"loss": float(loss.detach()), "frame": t, "n": len(self.tissue)}
+
+        if self.tools is not None and self.iteration % c.tool_every == 0 and self.tool_visible[:, t].any():
+            tg = self.motion.apply(self.tools.gaussians(), t)
+            tout = render_gaussians(tg, self.camera, backend=c.backend)
+            tm = self.tool_mask[t]
+            comp = tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach()
+            tloss = _masked_l1(comp, gt, tm) + c.lambda_tool_alpha * (tout.alpha - tm).abs().mean()
+            tloss = tloss + c.lambda_pose_smooth * self.motion.smoothness(self.extent)
+            tloss.backward()
+            self.tools.step()
+            self.motion_opt.step()
+            self.motion_opt.zero_grad(set_to_none=True)
+            info["tool_loss"] = float(tloss.detach())
+
+        self.tissue.step()
+        if fine:
+            self.deform_opt.step()
+        self.deform_opt.zero_grad(set_to_none=True)
+
+        it = self.iteration + 1
+        lo, hi = int(c.densify_from * c.iters), int(c.densify_until * c.iters)
+        if lo < it <= hi and it % c.densify_every == 0:
+            info["densify"] = self.tissue.densify_and_prune(
+                c.densify_grad_threshold, c.percent_dense, self.extent, c.prune_opacity, c.max_gaussians, self.gen)
+        self.iteration = it
+        return info
+
+    def _accumulate_view_gradient(self, g, out, means2d) -> None:
+        """Densification statistics: the view-space gradient of every Gaussian's projected centre.
+
+        The torch backend exposes the projected centres in the graph; for other backends (gsplat returns
+        a view that holds no gradient) the pixel-space gradient is recovered from the camera-space one,
+        d L / d u = (z / f) d L / d x, which ignores the small perspective term along z.
+        """
+        radii = out.meta["radii"]
+        visible = radii.gt(0).any(-1) if radii.ndim == 2 else radii.gt(0)
+        if means2d is not None and means2d.grad is not None:
+            grad2d = means2d.grad
+        elif g.means.grad is not None:
+            z = out.meta["depths"].detach().clamp_min(1e-6)
+            K = self.camera.K
+            grad2d = torch.stack([g.means.grad[:, 0] * z / K[0, 0], g.means.grad[:, 1] * z / K[1, 1]], -1)
+        else:
+            return
+        self.tissue.add_stats(grad2d.detach(), visible, self.camera.width, self.camera.height)
+
+    # ------------------------------------------------------------------ loop
+    def run(self, progress: ProgressFn | None = None, stop_after: int | None = None) -> None:
+        """Train up to ``config.iters``, checkpointing every ``checkpoint_every`` iterations.
+
+        ``stop_after``: stop (checkpoint, then raise :class:`Interrupted`) after this many iterations of
+        this call, to test resuming. A KeyboardInterrupt also writes the checkpoint first.
+        """
+        c = self.cfg
+        done_here = 0
+        try:
+            while self.iteration < c.iters:
+                t0 = time.perf_counter()
+                info = self.step()
+                self.elapsed += time.perf_counter() - t0  # training time only (no evaluation, no I/O)
+                done_here += 1
+                if self.iteration % 50 == 0 or self.iteration == c.iters:
+                    self.history.append({"iteration": self.iteration, "seconds": round(self.elapsed, 2),
+                                         "loss": round(info["loss"], 6), "gaussians": len(self.tissue)})
+                if c.eval_every and self.iteration % c.eval_every == 0 and self.prep.test:
+                    ev = self.evaluate(self.prep.test)
+                    self.history.append({"iteration": self.iteration, "seconds": round(self.elapsed, 2),
+                                         "test_psnr_masked": round(ev["psnr_masked"], 3),
+                                         "test_psnr_endonerf": round(ev["psnr_endonerf"], 3)})
+                if progress is not None:
+                    progress(self.iteration, c.iters, info)
+                if self.iteration % c.checkpoint_every == 0 and self.iteration < c.iters:
+                    self.save_checkpoint()
+                if stop_after is not None and done_here >= stop_after and self.iteration < c.iters:
+                    self.save_checkpoint()
+                    raise Interrupted(f"stopped after {done_here} iterations (checkpoint at {self.iteration})")
+        except KeyboardInterrupt:
+            self.save_checkpoint()
+            raise
+
+    # ------------------------------------------------------------------ outputs
+    @torch.no_grad()
+    def gaussians_at(self, frame: int, include_tools: bool = True):
+        return compose_at(self.tissue.gaussians().detach(), self.tools.gaussians().detach() if self.tools else None,
+                          self.deformation, self.motion, float(self.times[frame]), frame, include_tools)
+
+    @torch.no_grad()
+    def evaluate(self, frames: list[int], render_dir: Path | None = None) -> dict:
+        """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``."""
+        from endogsim.io.video_writer import write_frames_png
+
+        res = {"psnr_masked": [], "psnr_endonerf": [], "ssim_masked": [], "ssim_endonerf": [], "psnr_full": []}
+        renders, full = [], []
+        for t in frames:
+            pred = render_gaussians(self.gaussians_at(t, False), self.camera, backend=self.cfg.backend).rgb.clamp(0, 1)
+            gt = self.frames[t]
+            m, tool = self.tissue_mask[t], self.tool_mask[t]
+            res["psnr_masked"].append(psnr(pred, gt, m))
+            res["ssim_masked"].append(ssim(pred, gt, m))
+            res["psnr_endonerf"].append(psnr_endonerf(pred, gt, tool))
+            keep = (1 - tool)[..., None]
+            res["ssim_endonerf"].append(ssim(pred * keep, gt * keep))
+            renders.append(pred.cpu().numpy())
+            whole = pred
+            if self.tools is not None:
+                whole = render_gaussians(self.gaussians_at(t, True), self.camera, backend=self.cfg.backend).rgb.clamp(0, 1)
+                full.append(whole.cpu().numpy())
+            valid = ((self.tissue_mask[t] + tool) > 0).float()  # leave out background / unlabelled
+            res["psnr_full"].append(psnr(whole, gt, valid))
+        if render_dir is not None:
+            for sub, imgs in (("test", renders), ("test_full", full)):
+                for t, img in zip(frames, imgs):
+                    write_frames_png(img[None], render_dir / sub, pattern=f"frame_{t:04d}.png")
+        return {k: float(np.mean(v)) if v else float("nan") for k, v in res.items()} | {"per_frame": res}
+
+    def export(self) -> dict:
+        """Write every run output (see :mod:`endogsim.recon.model`) and return the metrics."""
+        from endogsim.cli.common import write_json_atomic
+        from endogsim.gaussians.model import Gaussians
+        from endogsim.gaussians.ply import write_ply
+
+        out, sc = self.out, self.prep.scene
+        if self.motion is not None:
+            trained = self.tool_visible.clone()
+            for t in self.prep.test:
+                trained[:, t] = False
+            self.motion.interpolate_missing(trained)
+        tissue = self.tissue.gaussians().detach().to("cpu")
+        tools = self.tools.gaussians().detach().to("cpu") if self.tools is not None else None
+        canonical = Gaussians.concat([tissue, tools]) if tools is not None else tissue
+        write_ply(canonical, out / "canonical.ply")
+        write_ply(self.gaussians_at(0, True).to("cpu"), out / "frame0.ply")
+        labels = {str(i): {"name": lab.name, "is_tool": lab.is_tool, "class": lab.klass} for i, lab in sc.labels.items()}
+        save_torch_atomic({
+            "deformation": {**self.deformation.export(),
+                            "state_dict": {k: v.cpu() for k, v in self.deformation.state_dict().items()}},
+            "tool_motion": None if self.motion is None else {
+                "tool_ids": self.motion.tool_ids, "state_dict": {k: v.cpu() for k, v in self.motion.state_dict().items()}},
+            "num_tissue": len(tissue), "times": self.times.cpu(), "labels": labels,
+            "camera": {"K": self.camera.K.cpu().tolist(), "width": self.camera.width, "height": self.camera.height},
+        }, out / "deformation.pt")
+        write_json_atomic(out / "objects.json", labels)
+        traj = {}
+        if self.motion is not None:
+            M = self.motion.transforms().detach().cpu().numpy()
+            for k, oid in enumerate(self.motion.tool_ids):
+                traj[str(oid)] = {"name": sc.name_of(oid), "reference_frame": self.init_info["tool_ref_frames"][k],
+                                  "transforms": M[k].tolist()}
+            arrays = {f"object_{oid}": M[k] for k, oid in enumerate(self.motion.tool_ids)}
+        else:
+            arrays = {}
+        write_json_atomic(out / "tool_trajectories.json", {
+            "convention": "per tool: [T, 4, 4] rigid transforms, canonical Gaussians -> frame t, world = camera "
+                          "frame of a fixed endoscope, metres", "times": self.times.tolist(), "tools": traj})
+        tmp = out / "tool_trajectories.tmp.npz"
+        np.savez(tmp, times=self.times.numpy(), **arrays)
+        tmp.replace(out / "tool_trajectories.npz")
+
+        ev = self.evaluate(self.prep.test, out / "renders")
+        per_frame = ev.pop("per_frame")
+        metrics = {
+            **ev, "test_frames": self.prep.test, "per_frame": per_frame, "train_frames": len(self.prep.train),
+            "training_seconds": round(self.elapsed, 2), "iterations": self.iteration,
+            "num_gaussians": len(canonical), "num_tissue_gaussians": len(tissue),
+            "num_tool_gaussians": 0 if tools is None else len(tools),
+            "resolution": [sc.width, sc.height], "device": str(self.device),
+            "depth_source": self.prep.depth_source, "segmentation_source": self.prep.seg_source,
+            "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
+                         "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
+                         "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
+                         "render": "tissue model only (tools are a separate model), except psnr_full"},
+            "init": self.init_info, "history": self.history,
+        }
+        write_json_atomic(out / "metrics.json", metrics)
+        return metrics
+
+
+def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | None = None, *,
+                progress: ProgressFn | None = None, resume: bool = True, stop_after: int | None = None) -> dict:
+    """Reconstruct a dataset into a run folder; returns the metrics (also in ``metrics.json``).
+
+    Args:
+        data: EndoNeRF / CholecSeg8K / procedural folder or a video file.
+        out_dir: run folder; if it holds ``checkpoint.pt`` and ``resume``, training continues from it.
+        config: :class:`ReconConfig` (default: CPU defaults).
+        progress: callback(iteration, total, info) after every iteration.
+        resume: continue from ``out_dir/checkpoint.pt`` when it exists.
+        stop_after: test hook: stop after this many iterations with a checkpoint (raises Interrupted).
+    """
+    cfg = (config or ReconConfig()).validate()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        prep = prepare_scene(data, cfg)
+    trainer = Trainer(prep, cfg, out)
+    ckpt = out / "checkpoint.pt"
+    if resume and ckpt.is_file():
+        st = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if st["config"] != cfg.to_dict():
+            warnings.warn(f"{ckpt}: the checkpoint was made with a different configuration; continuing with the "
+                          "checkpoint's model and the new schedule", stacklevel=2)
+        trainer.load_state(st)
+    else:
+        trainer.init_fresh()
+    from endogsim.cli.common import write_json_atomic
+
+    write_json_atomic(out / "config.json", cfg.to_dict())
+    trainer.run(progress, stop_after)
+    metrics = trainer.export()
+    trainer.save_checkpoint()
+    return metrics

@@ -1,0 +1,279 @@
+"""A small pure-PyTorch MLS-MPM used to simulate the *ground-truth* videos of the benchmark.
+
+Why it lives here: the benchmark must not reward matching one discretisation (DESIGN.md section 8), and
+the ground truth may use a finer simulation than identification. This reference solver uses the same
+physics as the Warp simulator in :mod:`endogsim.physics` (quadratic B-splines, APIC/MLS transfer, fixed
+corotated elasticity, sticky kinematic tool colliders, anchored particles, gravity), written in plain
+vectorised PyTorch (forward only, no tape) so it is easy to read and has no compile step.
+
+Units: everything in world metres, seconds, kg, Pa. Simulating in world units is the same as simulating
+in a unit sim box with E_sim = s^2 E (DESIGN.md section 3); the box here only positions the grid.
+
+The solver returns particle positions and deformation gradients per rendered frame; Gaussians are moved
+from them by :func:`skin_gaussians` (k nearest particles of the same object, DESIGN.md section 4), so
+Sigma_t = F Sigma_0 F^T. Optional massless tracers (advected through the grid every substep) are kept
+for checks; they cost a G2P per substep.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from endogsim.errors import SimulationError
+
+__all__ = ["p_wave_speed", "cfl_number", "stable_dt", "Capsule", "MPMProblem", "MPMResult", "run_mpm", "skin_gaussians"]
+
+
+def p_wave_speed(E: float, nu: float, density: float) -> float:
+    """Dilatational wave speed c_p (m/s) of a linear elastic solid: sqrt(E (1-nu) / ((1+nu)(1-2nu) rho))."""
+    return math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu) * density))
+
+
+def cfl_number(E: float, nu: float, density: float, dt: float, dx: float) -> float:
+    """c_p dt / dx: explicit MPM is stable for values up to about 0.3-1 (DESIGN.md section 4)."""
+    return p_wave_speed(E, nu, density) * dt / dx
+
+
+def stable_dt(E: float, nu: float, density: float, dx: float, cfl: float = 0.4) -> float:
+    """Largest substep dt (s) with CFL number ``cfl``."""
+    return cfl * dx / p_wave_speed(E, nu, density)
+
+
+@dataclass
+class Capsule:
+    """A kinematic tool collider: segment a-b (metres, world, at frame 0) with radius (metres).
+
+    ``offsets`` [T, 3] is the translation of the tool at each rendered frame (metres, offsets[0] = 0);
+    between frames it moves at constant velocity. Grid nodes inside the capsule take the tool velocity
+    (sticky contact: pressing and grasping alike).
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+    offsets: np.ndarray
+
+
+@dataclass
+class MPMProblem:
+    """Everything one simulation needs.
+
+    Attributes:
+        x: [P, 3] particle positions (metres). vol: [P] particle volumes (m^3).
+        mu, lam: [P] Lame parameters (Pa); density: [P] (kg/m^3).
+        anchored: [P] bool, particles held at their rest position (boundary conditions).
+        box_lo: [3] world corner of the grid (metres); box_size: edge of the cubic grid (metres).
+        grid: cells per edge. dt: substep (s). substeps: substeps per rendered frame.
+        gravity: [3] m/s^2 (world). tools: kinematic colliders. tracers: [G, 3] Gaussian centres to advect.
+        damping: grid velocity decay rate (1/s), a simple model of tissue viscosity.
+    """
+
+    x: np.ndarray
+    vol: np.ndarray
+    mu: np.ndarray
+    lam: np.ndarray
+    density: np.ndarray
+    anchored: np.ndarray
+    box_lo: np.ndarray
+    box_size: float
+    grid: int
+    dt: float
+    substeps: int
+    frames: int
+    gravity: np.ndarray
+    tools: list[Capsule] = field(default_factory=list)
+    tracers: np.ndarray | None = None
+    damping: float = 0.0
+
+
+@dataclass
+class MPMResult:
+    """x: [T, P, 3] particle positions (m); F: [T, P, 3, 3]; tracer_x: [T, G, 3]; tracer_F: [T, G, 3, 3]."""
+
+    x: np.ndarray
+    F: np.ndarray
+    tracer_x: np.ndarray
+    tracer_F: np.ndarray
+
+
+_OFFSETS = torch.stack(torch.meshgrid(*(torch.arange(3),) * 3, indexing="ij"), -1).reshape(27, 3)
+
+
+def _weights(xg: torch.Tensor):
+    """Quadratic B-spline stencil of positions in grid units xg [N, 3] -> base [N,3] int, w [N,27], dpos [N,27,3]."""
+    base = torch.floor(xg - 0.5).long()
+    fx = xg - base
+    w = torch.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2], 1)  # [N, 3(stencil), 3(axis)]
+    o = _OFFSETS.to(xg.device)
+    wn = w[:, o[:, 0], 0] * w[:, o[:, 1], 1] * w[:, o[:, 2], 2]
+    dpos = o[None].to(xg.dtype) - fx[:, None]  # grid units
+    return base, wn, dpos
+
+
+def _flat_index(base: torch.Tensor, n: int) -> torch.Tensor:
+    idx = base[:, None] + _OFFSETS.to(base.device)[None]
+    return (idx[..., 0] * n + idx[..., 1]) * n + idx[..., 2]
+
+
+def _polar_R(F: torch.Tensor) -> torch.Tensor:
+    U, _, Vh = torch.linalg.svd(F)
+    R = U @ Vh
+    # Keep a proper rotation (det +1) so inverted elements are pushed back.
+    det = torch.linalg.det(R)
+    U = U.clone()
+    U[det < 0, :, 2] *= -1
+    return U @ Vh
+
+
+def _g2p(xg, gv, n, inv_dx, stencil=None):
+    base, w, dpos = _weights(xg) if stencil is None else stencil
+    idx = _flat_index(base, n)
+    v_nb = gv[idx]  # [N, 27, 3]
+    v = (w[..., None] * v_nb).sum(1)
+    C = 4 * inv_dx * torch.einsum("nk,nki,nkj->nij", w, v_nb, dpos)
+    return v, C
+
+
+def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
+    """Simulate ``p.frames`` rendered frames (frame 0 is the rest state) and return trajectories.
+
+    Raises :class:`SimulationError` when a value becomes NaN/inf or particles reach the grid border.
+    """
+    dtype = torch.float64
+    n, L, dt = p.grid, float(p.box_size), float(p.dt)
+    dx = L / n
+    inv_dx = 1.0 / dx
+    lo = torch.tensor(p.box_lo, dtype=dtype)
+    x = torch.tensor(p.x, dtype=dtype) - lo
+    x0 = x.clone()
+    P = x.shape[0]
+    v = torch.zeros_like(x)
+    C = torch.zeros(P, 3, 3, dtype=dtype)
+    F = torch.eye(3, dtype=dtype).repeat(P, 1, 1)
+    vol = torch.tensor(p.vol, dtype=dtype)
+    mass = vol * torch.tensor(p.density, dtype=dtype)
+    mu, lam = torch.tensor(p.mu, dtype=dtype), torch.tensor(p.lam, dtype=dtype)
+    anchored = torch.tensor(p.anchored, dtype=torch.bool)
+    g = torch.tensor(p.gravity, dtype=dtype)
+    tr = torch.tensor(p.tracers if p.tracers is not None else np.zeros((0, 3)), dtype=dtype) - lo
+    trF = torch.eye(3, dtype=dtype).repeat(tr.shape[0], 1, 1)
+
+    # Grid node coordinates (metres, box frame) for the collider test.
+    ii = torch.arange(n + 1, dtype=dtype) * dx
+    nodes = torch.stack(torch.meshgrid(ii, ii, ii, indexing="ij"), -1).reshape(-1, 3)
+    n1 = n + 1
+    pad = 2 * dx  # the quadratic stencil and the 2-cell wall band need this margin
+    in_tool = []
+    for tool in p.tools:
+        a = torch.tensor(tool.a, dtype=dtype) - lo
+        b = torch.tensor(tool.b, dtype=dtype) - lo
+        in_tool.append((a, b, float(tool.radius), torch.tensor(tool.offsets, dtype=dtype)))
+    # Boundary: zero velocity in the outer 2 cells of the grid (a closed box).
+    ijk = torch.stack(torch.meshgrid(*(torch.arange(n1),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    wall = ((ijk < 2) | (ijk > n - 2)).any(1)
+
+    if ((x < pad) | (x > L - pad)).any():
+        raise SimulationError("particles lie outside the sim box (or within 2 cells of its walls): enlarge the box")
+    xs, Fs, txs, tFs = [x.clone()], [F.clone()], [tr.clone()], [trF.clone()]
+    tr = tr.clamp(pad, L - pad)  # tracers outside the box would index outside the grid
+    decay = math.exp(-p.damping * dt)
+    for frame in range(1, p.frames):
+        for sub in range(p.substeps):
+            xg = x * inv_dx
+            base, w, dpos = _weights(xg)
+            idx = _flat_index(base, n1)
+            J = torch.linalg.det(F)
+            R = _polar_R(F)
+            stress = 2 * mu[:, None, None] * (F - R) @ F.mT + (lam * (J - 1) * J)[:, None, None] * torch.eye(3, dtype=dtype)
+            stress = -dt * 4 * inv_dx * inv_dx * vol[:, None, None] * stress
+            affine = stress + mass[:, None, None] * C
+            mom = mass[:, None, None] * v[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)
+            gm = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w * mass[:, None]).reshape(-1))
+            gmv = torch.zeros(n1 ** 3, 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w[..., None] * mom).reshape(-1, 3))
+            has = gm > 1e-12
+            gv = torch.zeros_like(gmv)
+            gv[has] = gmv[has] / gm[has, None]
+            gv[has] += dt * g
+            gv *= decay
+            for a, b, r, offs in in_tool:
+                vel = (offs[frame] - offs[frame - 1]) / (p.substeps * dt)
+                # Position of the tool during this substep (constant velocity between frames).
+                shift = offs[frame - 1] + vel * (sub * dt)
+                ab = b - a
+                tpar = (((nodes - a - shift) @ ab) / (ab @ ab)).clamp(0, 1)
+                d = torch.linalg.norm(nodes - (a + shift + tpar[:, None] * ab), dim=1)
+                inside = d < r
+                gv[inside] = vel
+            gv[wall] = 0
+            v, C = _g2p(xg, gv, n1, inv_dx, stencil=(base, w, dpos))
+            x = x + dt * v
+            F = (torch.eye(3, dtype=dtype) + dt * C) @ F
+            # Anchors: held at rest (Dirichlet boundary condition on particles).
+            v[anchored] = 0
+            C[anchored] = 0
+            x[anchored] = x0[anchored]
+            F[anchored] = torch.eye(3, dtype=dtype)
+            if tr.shape[0]:
+                tv, tC = _g2p(tr * inv_dx, gv, n1, inv_dx)
+                tr = tr + dt * tv
+                trF = (torch.eye(3, dtype=dtype) + dt * tC) @ trF
+                tr = tr.clamp(pad, L - pad)
+            if not torch.isfinite(x).all():
+                raise SimulationError(f"MPM diverged (NaN/inf) at frame {frame}: lower dt or E")
+            if ((x < pad) | (x > L - pad)).any():
+                raise SimulationError(f"particles reached the grid border at frame {frame}: enlarge the sim box")
+        xs.append(x.clone())
+        Fs.append(F.clone())
+        txs.append(tr.clone())
+        tFs.append(trF.clone())
+        if progress is not None:
+            progress(frame)
+    lo_np = p.box_lo.astype(np.float64)
+    return MPMResult(
+        x=torch.stack(xs).numpy() + lo_np,
+        F=torch.stack(Fs).numpy(),
+        tracer_x=torch.stack(txs).numpy() + lo_np,
+        tracer_F=torch.stack(tFs).numpy(),
+    )
+
+
+def skin_gaussians(g_x0: np.ndarray, g_ids: np.ndarray, p_x0: np.ndarray, p_ids: np.ndarray,
+                   p_x: np.ndarray, p_F: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Move Gaussians with their k nearest particles of the same object (inverse-square-distance weights).
+
+    x_g(t) = x_g0 + sum_k w_k (x_k(t) - x_k0),  F_g(t) = sum_k w_k F_k(t).
+
+    Interpolating displacements (rather than each particle's affine map x_k + F_k (x - x_k0)) keeps
+    neighbouring Gaussians together where F is noisy, e.g. at a sticky tool contact.
+
+    Args:
+        g_x0: [G, 3] Gaussian centres at rest (m); g_ids: [G] object ids.
+        p_x0: [P, 3] particle rest positions (m); p_ids: [P] object ids.
+        p_x: [T, P, 3] particle positions per frame (m); p_F: [T, P, 3, 3] deformation gradients.
+    Returns:
+        x [T, G, 3] (m) and F [T, G, 3, 3].
+    """
+    from scipy.spatial import cKDTree
+
+    T, G = p_x.shape[0], g_x0.shape[0]
+    out_x = np.repeat(g_x0[None].astype(np.float64), T, 0)
+    out_F = np.tile(np.eye(3), (T, G, 1, 1))
+    for oid in np.unique(g_ids):
+        gsel = np.nonzero(g_ids == oid)[0]
+        psel = np.nonzero(p_ids == oid)[0]
+        if len(psel) == 0:
+            continue  # an object without particles (static) stays at rest
+        kk = min(k, len(psel))
+        dist, nb = cKDTree(p_x0[psel]).query(g_x0[gsel], k=kk)
+        dist, nb = dist.reshape(len(gsel), kk), psel[nb.reshape(len(gsel), kk)]
+        w = 1.0 / (dist + 1e-4) ** 2
+        w /= w.sum(1, keepdims=True)
+        for t in range(T):
+            disp = p_x[t][nb] - p_x0[nb]  # [Gs, k, 3]
+            out_x[t, gsel] = g_x0[gsel] + (w[..., None] * disp).sum(1)
+            out_F[t, gsel] = (w[..., None, None] * p_F[t][nb]).sum(1)
+    return out_x, out_F

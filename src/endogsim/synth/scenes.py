@@ -1,0 +1,227 @@
+"""Build a benchmark scene in memory: Gaussians, MPM particles, boundary conditions, tools, ground truth.
+
+:func:`build_procedural` turns a suite entry (``endogsim/data/benchmark_suite.json``) into a
+:class:`BuiltScene`; :mod:`endogsim.synth.from_data` does the same from real frames. Simulation and file
+writing live in :mod:`endogsim.synth.generate`.
+
+Boundary conditions used by every scene (recorded in ``scene.json``):
+  * ``back_face``: particles of the last extrusion layer (the hidden back of the tissue) are held in place,
+    except inside an optional ``release`` disc (so a grasper can lift a flap);
+  * ``border``: particles within ``border`` metres of an organ's outline are held (tissue continues
+    outside the field of view);
+  * the sim box walls (2 grid cells) are fixed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from endogsim.errors import DataError, SimulationError
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
+from endogsim.synth import procedural as proc
+from endogsim.synth.mpm import Capsule, cfl_number, p_wave_speed
+from endogsim.synth.spec import ObjectTruth, SimSettings, scene_spec
+
+__all__ = ["BuiltScene", "build_procedural", "tool_offsets", "sim_settings", "tissue_from_surface"]
+
+
+@dataclass
+class BuiltScene:
+    """A scene ready to simulate and render.
+
+    Attributes:
+        name: scene name. camera: the fixed endoscope. frames: number of rendered frames. frame_dt: s.
+        gaussians: all Gaussians of frame 0 (tissue first, then tools), object ids set.
+        tissue_gaussians: [G] bool, True for Gaussians advected by the simulation.
+        tool_gaussians: {tool object id: [G] bool} Gaussians moving rigidly with each tool.
+        particles: [P, 3] MPM particle positions (metres); particle_ids [P]; particle_vol [P] (m^3);
+        anchored: [P] bool. objects: ground-truth records. tools: capsules with per-frame offsets.
+        box_lo [3], box_size (metres): the sim box. gravity [3] m/s^2. damping 1/s.
+        ground_truth / identification: discretisations. boundary_conditions, extrusion: descriptions for
+        scene.json. depth_ref: typical distance (metres) for lighting. source: "procedural" or data folder.
+    """
+
+    name: str
+    camera: Camera
+    frames: int
+    frame_dt: float
+    gaussians: Gaussians
+    tissue_gaussians: np.ndarray
+    tool_gaussians: dict[int, np.ndarray]
+    particles: np.ndarray
+    particle_ids: np.ndarray
+    particle_vol: np.ndarray
+    anchored: np.ndarray
+    objects: list[ObjectTruth]
+    tools: list[tuple[int, Capsule]]
+    box_lo: np.ndarray
+    box_size: float
+    gravity: np.ndarray
+    damping: float
+    ground_truth: SimSettings
+    identification: SimSettings
+    boundary_conditions: list[dict[str, Any]]
+    extrusion: dict[str, Any]
+    particle_spacing: float
+    source: str = "procedural"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _smoothstep(s: np.ndarray) -> np.ndarray:
+    return s * s * (3 - 2 * s)
+
+
+def tool_offsets(keyframes: list[list[float]], frames: int) -> np.ndarray:
+    """Tool translation [frames, 3] (metres) from keyframes [[fraction of the sequence, dx, dy, dz], ...],
+    eased in and out between keyframes so the tool starts and stops smoothly."""
+    kf = np.asarray(keyframes, dtype=np.float64)
+    if kf.ndim != 2 or kf.shape[1] != 4 or kf[0, 0] != 0.0 or np.any(np.diff(kf[:, 0]) <= 0):
+        raise DataError(f"tool keyframes must be [[0, dx, dy, dz], [f1, ...], ...] with increasing fractions, got {keyframes}")
+    s = np.linspace(0, 1, frames) if frames > 1 else np.zeros(1)
+    out = np.zeros((frames, 3))
+    for i, si in enumerate(s):
+        j = min(np.searchsorted(kf[:, 0], si, side="right") - 1, len(kf) - 1)
+        if j == len(kf) - 1:
+            out[i] = kf[-1, 1:]
+            continue
+        a = (si - kf[j, 0]) / (kf[j + 1, 0] - kf[j, 0])
+        out[i] = kf[j, 1:] + _smoothstep(a) * (kf[j + 1, 1:] - kf[j, 1:])
+    return out
+
+
+def sim_settings(objects: list[ObjectTruth], box_size: float, grid: int, frame_dt: float,
+                 dt_max: float, cfl_max: float | None = None) -> SimSettings:
+    """Substeps per frame for a grid of ``grid`` cells over ``box_size`` metres: the largest dt <= ``dt_max``
+    that divides ``frame_dt`` and (when ``cfl_max`` is given) keeps c_p dt / dx <= ``cfl_max``."""
+    dx = box_size / grid
+    soft = [o for o in objects if not o.rigid]
+    cmax = max((p_wave_speed(o.E, o.nu, o.density) for o in soft), default=1.0)
+    dt = dt_max if cfl_max is None else min(dt_max, cfl_max * dx / cmax)
+    substeps = max(1, math.ceil(frame_dt / dt - 1e-9))
+    dt = frame_dt / substeps
+    cfl = max((cfl_number(o.E, o.nu, o.density, dt, dx) for o in soft), default=0.0)
+    return SimSettings(grid=grid, dt=dt, substeps=substeps, cfl=cfl)
+
+
+def _outline(obj: dict[str, Any]):
+    """(mask_fn, edge_distance_fn, height_fn) of an organ in its local (u, v) coordinates (metres)."""
+    w, h = obj["size"]
+    dome = float(obj.get("dome", 0.0))
+    excl = obj.get("exclude_ellipse")
+    c = np.array(obj["center"], dtype=float)
+    if obj["outline"] == "rect":
+        def edge(u, v):
+            return np.minimum(w / 2 - np.abs(u), h / 2 - np.abs(v))
+
+        def height(u, v):
+            return dome * np.clip(1 - (2 * u / w) ** 2, 0, 1) * np.clip(1 - (2 * v / h) ** 2, 0, 1)
+    elif obj["outline"] == "ellipse":
+        def edge(u, v):
+            return (1 - np.sqrt((2 * u / w) ** 2 + (2 * v / h) ** 2)) * min(w, h) / 2
+
+        def height(u, v):
+            return dome * np.sqrt(np.clip(1 - (2 * u / w) ** 2 - (2 * v / h) ** 2, 0, 1))
+    else:
+        raise DataError(f"object {obj.get('name')!r}: unknown outline {obj['outline']!r} (use 'rect' or 'ellipse')")
+
+    def mask(u, v):
+        keep = edge(u, v) >= -1e-9
+        if excl is not None:
+            ec = np.array(excl["center"]) - c
+            keep &= ((u - ec[0]) / excl["radii"][0]) ** 2 + ((v - ec[1]) / excl["radii"][1]) ** 2 > 1.0
+        return keep
+
+    return mask, edge, height
+
+
+def tissue_from_surface(points: np.ndarray, edge_dist: np.ndarray, thickness: float, spacing: float,
+                        anchors: dict[str, Any], object_id: int) -> dict[str, np.ndarray]:
+    """Particles of one tissue object from its visible surface samples ``points`` [S, 3] (metres).
+
+    ``edge_dist`` [S]: distance of each sample to the organ outline (metres) for the border anchor.
+    Returns x [P, 3], ids [P], vol [P] (m^3), anchored [P] bool.
+    """
+    x, layer, src = proc.extrude_along_rays(points, thickness, spacing)
+    n_layers = layer.max() + 1
+    anchored = np.zeros(len(x), bool)
+    if anchors.get("back_face", True):
+        back = layer == n_layers - 1
+        rel = anchors.get("release")
+        if rel is not None:
+            d = np.linalg.norm(x[:, :2] - np.asarray(rel["center"])[None], axis=1)
+            back &= d > rel["radius"]
+        anchored |= back
+    band = float(anchors.get("border", 0.0))
+    if band > 0:
+        anchored |= edge_dist[src] < band
+    layer_dz = thickness / (n_layers - 1)
+    vol = np.full(len(x), spacing * spacing * layer_dz)
+    return {"x": x, "ids": np.full(len(x), object_id, np.int64), "vol": vol, "anchored": anchored}
+
+
+def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale: float = 1.0) -> BuiltScene:
+    """Build suite scene ``name`` (see ``benchmark_suite.json``) for ``seed``; ``frames`` overrides the
+    frame count, ``scale`` multiplies the image size (the geometry and simulation are unchanged)."""
+    spec = scene_spec(name)
+    if scale <= 0 or not math.isfinite(scale):
+        raise DataError(f"--scale must be a positive number, got {scale}")
+    T = int(frames if frames is not None else spec["frames"])
+    if T < 2:
+        raise DataError(f"--frames must be at least 2, got {T}")
+    W, H = (max(16, round(s * scale)) for s in spec["image_size"])
+    cam = proc.endoscope_camera(W, H, spec["fov_x_deg"])
+    g_sp, p_sp = spec["gaussian_spacing"], spec["particle_spacing"]
+    D = spec["distance"]
+
+    objects, parts_g, parts_p = [], [], []
+    bcs: list[dict[str, Any]] = [{"type": "box_walls", "cells": 2}]
+    for k, o in enumerate(spec["objects"]):
+        objects.append(ObjectTruth(id=o["id"], name=o["name"], klass=o["class"], rigid=o["rigid"],
+                                   E=float(o["E"]), nu=float(o["nu"]), density=float(o["density"])))
+        mask, edge, height = _outline(o)
+        center = (o["center"][0], o["center"][1], D)
+        tex_seed = seed * 1000 + 17 * o["id"] + k
+        pts, col, uv = proc.tissue_surface(center, tuple(o["size"]), g_sp, tex_seed, height_fn=height,
+                                           palette=o.get("palette", "mucosa"), mask_fn=mask)
+        parts_g.append(proc.surface_gaussians(pts, col, g_sp, o["id"]))
+        # Particles sample the same surface on a coarser lattice (same height field, no texture needed).
+        ppts, _, puv = proc.tissue_surface(center, tuple(o["size"]), p_sp, tex_seed, height_fn=height,
+                                           palette=o.get("palette", "mucosa"), mask_fn=mask)
+        parts_p.append(tissue_from_surface(ppts, edge(puv[:, 0], puv[:, 1]), o["thickness"], p_sp,
+                                           o.get("anchors", {}), o["id"]))
+        bcs.append({"type": "anchors", "object": o["name"], **o.get("anchors", {})})
+
+    t = spec["tool"]
+    objects.append(ObjectTruth(id=t["id"], name=t["name"], klass=t["class"], rigid=True,
+                               E=float(t["E"]), nu=float(t["nu"]), density=float(t["density"])))
+    tip, end = np.array(t["tip"], float), np.array(t["end"], float)
+    tool_g = proc.tool_gaussians(tip, end, t["radius"], 0.8 * g_sp, t["id"], seed=seed, jaw=t.get("jaw", False))
+    capsule = Capsule(a=tip, b=end, radius=t["radius"], offsets=tool_offsets(t["keyframes"], T))
+
+    tissue = Gaussians.concat(parts_g)
+    allg = Gaussians.concat([tissue, tool_g])
+    allg = proc.bake_lighting(allg, cam, D)
+    n_t = len(tissue)
+    tissue_mask = np.zeros(len(allg), bool)
+    tissue_mask[:n_t] = True
+    box = spec["sim_box"]
+    box_lo = np.asarray(box["center"], float) - box["size"] / 2
+    gt = sim_settings(objects, box["size"], spec["sim_grid"], spec["frame_dt"], spec["ident_dt"] / spec["gt_refine"],
+                      spec["gt_cfl"])
+    ident = sim_settings(objects, box["size"], spec["ident_grid"], spec["frame_dt"], spec["ident_dt"])
+    if gt.cfl > 0.5:
+        raise SimulationError(f"scene {name}: ground-truth CFL {gt.cfl:.2f} > 0.5")
+    cat = {k: np.concatenate([p[k] for p in parts_p]) for k in parts_p[0]}
+    return BuiltScene(
+        name=name, camera=cam, frames=T, frame_dt=spec["frame_dt"], gaussians=allg, tissue_gaussians=tissue_mask,
+        tool_gaussians={t["id"]: ~tissue_mask}, particles=cat["x"], particle_ids=cat["ids"], particle_vol=cat["vol"],
+        anchored=cat["anchored"], objects=objects, tools=[(t["id"], capsule)], box_lo=box_lo, box_size=box["size"],
+        gravity=np.asarray(spec["gravity"], float), damping=spec["damping"], ground_truth=gt, identification=ident,
+        boundary_conditions=bcs, extrusion={"along": "viewing_rays", "thickness": {o["name"]: o["thickness"] for o in spec["objects"]}},
+        particle_spacing=p_sp, extra={"description": spec["description"], "depth_ref": D},
+    )

@@ -1,0 +1,211 @@
+"""Material identification through the differentiable simulator, on the synthesized ``tiny`` scene."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from endogsim.errors import DataError, SimulationError
+from endogsim.identify import IdentifyConfig, identify, load_problem
+from endogsim.identify.forward import material_tables
+from endogsim.identify.optimize import _project, stable_log10_E_max
+from endogsim.identify.problem import capsule_collider_points
+from endogsim.identify.report import write_outputs
+from endogsim.materials.field import MaterialField, MaterialRecord
+
+FRAMES = 5  # short clip: the probe starts indenting in the first frames
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from endogsim.synth import synthesize
+
+    return synthesize("tiny", tmp_path_factory.mktemp("ident") / "tiny", seed=0, frames=FRAMES)
+
+
+@pytest.fixture(scope="module")
+def problem(tiny):
+    return load_problem(tiny)
+
+
+def field_from_truth(problem, E_factor=1.0, nu=None, E_override=None) -> MaterialField:
+    recs = []
+    for o in problem.truth.objects:
+        E = o.E if o.rigid else (E_override if E_override is not None else o.E * E_factor)
+        recs.append(MaterialRecord(name=o.name, object_id=o.id, klass=o.klass, rigid=o.rigid,
+                                   model="rigid" if o.rigid else "fixed_corotated", E=E,
+                                   nu=o.nu if (o.rigid or nu is None) else nu, density=o.density, source="manual"))
+    return MaterialField(recs)
+
+
+def fast_config(**kw) -> IdentifyConfig:
+    return IdentifyConfig(**{"iters": 3, "lr": 0.1, "render_scale": 0.5, "grad_mode": "frame", "patience": 100, **kw})
+
+
+@pytest.fixture(scope="module")
+def run3(problem, tmp_path_factory):
+    """Three uninterrupted iterations from E 2x too stiff."""
+    d = tmp_path_factory.mktemp("run3")
+    return identify(problem, field_from_truth(problem, 2.0), fast_config(), run_dir=d), d
+
+
+def test_problem_matches_the_scene(problem):
+    pb = problem
+    assert pb.frames.shape == (FRAMES, pb.camera.height, pb.camera.width, 3)
+    assert pb.deformable_ids == [1]
+    assert pb.particles.object_ids.unique().tolist() == [1]  # the rigid tool is a collider, not particles
+    assert len(pb.scenario.colliders) == 1 and len(pb.scenario.anchors) == 1
+    assert pb.gt_flow.shape == (FRAMES - 1, pb.camera.height, pb.camera.width, 2)
+
+
+def test_capsule_collider_points_fill_the_capsule():
+    tip, end, r, dx = np.array([0.0, 0.0, 0.0]), np.array([0.02, 0.0, 0.0]), 0.003, 0.002
+    pts, rho = capsule_collider_points(tip, end, r, dx)
+    d_axis = lambda p: np.linalg.norm(p - np.stack([np.clip(p[:, 0], 0, 0.02), 0 * p[:, 0], 0 * p[:, 0]], 1), axis=1)  # noqa: E731
+    assert (d_axis(pts) + rho <= r + 1e-9).all()  # every contact sphere lies inside the capsule
+    # Points of the capsule at least rho inside it are covered by some contact sphere.
+    rng = np.random.default_rng(0)
+    q = rng.uniform([-r, -r, -r], [0.02 + r, r, r], (2000, 3))
+    q = q[d_axis(q) < r - rho]
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(pts).query(q)
+    assert (dist <= rho + 1e-9).all()
+
+
+def test_true_materials_reproduce_the_ground_truth_flow(problem):
+    """The rebuilt scenario (anchors, capsule colliders, identification grid) explains the video at the truth."""
+    from endogsim.identify.report import evaluate_field
+
+    ev = evaluate_field(problem, field_from_truth(problem, 1.0))
+    gt_mag = float(np.linalg.norm(problem.gt_flow, axis=-1)[problem.gt_flow_valid].mean())
+    assert ev.epe < 0.1 and ev.epe < 0.5 * gt_mag, (ev.epe, gt_mag)
+    assert ev.psnr > 35
+
+
+def test_loss_decreases_and_E_moves_towards_the_truth(run3):
+    res, _ = run3
+    losses = [h["loss"] for h in res.history]
+    assert len(losses) == 3
+    assert losses[-1] < losses[0]
+    E = [h["E"]["1"] for h in res.history]
+    assert E[0] > E[1] > E[2]  # 2x too stiff: every step softens
+    assert res.history[0]["grad_log10_E"][0] > 0
+    assert res.best_iteration == int(np.argmin(losses))
+
+
+def test_rigid_objects_stay_frozen(run3, problem):
+    res, _ = run3
+    tool = next(o for o in problem.truth.objects if o.rigid)
+    assert res.field[tool.id].E == tool.E and res.field[tool.id].nu == tool.nu and res.field[tool.id].rigid
+    assert res.field[tool.id].source == "manual"
+    assert all(set(h["E"]) == {"1"} for h in res.history)  # only the deformable object is a parameter
+    assert res.field[1].source == "identified"
+
+
+def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
+    res_a, _ = run3
+    init = field_from_truth(problem, 2.0)
+    first = identify(problem, init, fast_config(), run_dir=tmp_path, stop_after=1)
+    assert first.iterations == 1 and first.stopped == "interrupted"
+    assert (tmp_path / "checkpoint.pt").is_file()
+    res_b = identify(problem, init, fast_config(), run_dir=tmp_path)
+    assert res_b.iterations == 3
+    np.testing.assert_allclose([h["loss"] for h in res_b.history], [h["loss"] for h in res_a.history], rtol=1e-6)
+    assert res_b.field[1].E == pytest.approx(res_a.field[1].E, rel=1e-9)
+    assert res_b.field[1].nu == pytest.approx(res_a.field[1].nu, rel=1e-9)
+    # Other settings than the checkpoint's are refused, not silently mixed.
+    with pytest.raises(DataError, match="other settings"):
+        identify(problem, init, fast_config(loss="render"), run_dir=tmp_path)
+
+
+def test_unstable_request_is_refused_with_the_limit(problem):
+    with pytest.raises(SimulationError, match="stability limit"):
+        identify(problem, field_from_truth(problem, E_override=1e8), fast_config(iters=1), strict=True)
+
+
+def test_search_box_respects_the_stability_limit(problem):
+    fld = field_from_truth(problem, E_override=1e8)
+    cfg = fast_config()
+    params = fld.to_params(nu_bounds=cfg.nu_bounds)
+    _project(params, problem, fld, cfg)
+    from endogsim.physics import max_stable_E
+
+    emax = max_stable_E(float(params.nu()[0]), 1060.0, problem.mpm, problem.scenario.box.size)
+    assert float(params.E()[0]) == pytest.approx(cfg.stability_margin * emax, rel=1e-6)
+    # Higher nu -> lower limit (near-incompressible materials need smaller steps).
+    hi = stable_log10_E_max(problem, torch.tensor([0.3, 0.49]), torch.tensor([1000.0, 1000.0]), cfg)
+    assert hi[0] > hi[1]
+
+
+def test_global_material_ties_parameters():
+    recs = [MaterialRecord(name="liver", object_id=1, klass="liver", E=3000.0, nu=0.4, density=1060.0),
+            MaterialRecord(name="gallbladder", object_id=2, klass="gallbladder", E=12000.0, nu=0.44, density=1030.0),
+            MaterialRecord(name="probe", object_id=3, klass="instrument", model="rigid", rigid=True, E=2e11, nu=0.3,
+                           density=7850.0)]
+    fld = MaterialField(recs)
+    p = fld.to_params(global_material=True, nu_bounds=(0.0, 0.49))
+    assert p.log10_E.shape == (1,) and p.object_ids == [1, 2]
+    assert float(p.E()[0]) == pytest.approx(6000.0)  # geometric mean
+    log10_E, nu, rho = material_tables(fld, p)
+    assert log10_E[1] == log10_E[2] and nu[1] == nu[2]
+    assert float(log10_E[3]) == pytest.approx(math.log10(2e11))  # rigid: untouched
+    # A gradient through either object reaches the single shared parameter.
+    (log10_E[1] + 2 * log10_E[2]).backward()
+    assert float(p.log10_E.grad[0]) == pytest.approx(3.0)
+    out = fld.from_params(p)
+    assert out[1].E == out[2].E and out[3].E == 2e11
+    sep = fld.to_params(global_material=False, nu_bounds=(0.0, 0.49))
+    assert sep.log10_E.shape == (2,)
+
+
+def test_outputs_written(problem, run3, tmp_path):
+    res, run_dir = run3
+    m = write_outputs(run_dir, problem, res, fast_config(), init_name="test", video=True)
+    for f in ("materials_identified.json", "metrics.json", "loss.png", "parameters.png", "comparison.mp4",
+              "summary.txt", "history.json", "observed_flow.npz"):
+        assert (run_dir / f).is_file(), f
+    disk = json.loads((run_dir / "metrics.json").read_text())
+    for k in ("re_mean", "re_E", "re_nu", "re_G", "re_K", "epe", "psnr", "ssim", "seconds", "iterations"):
+        assert k in disk and math.isfinite(disk[k]), k
+    assert disk["iterations"] == 3 and "tissue" in disk["re_objects"]
+    ident = MaterialField.load(run_dir / "materials_identified.json")
+    assert ident[1].E == pytest.approx(res.field[1].E)
+    assert m["epe"] == disk["epe"]
+
+
+def test_cli_identify_iters_zero(tiny, tmp_path):
+    import typer
+    from typer.testing import CliRunner
+
+    from endogsim.cli.identify import register
+
+    app = typer.Typer()
+    register(app)
+
+    @app.command("noop")
+    def _noop() -> None:  # a second command keeps typer from collapsing the app into one command
+        pass
+
+    out = tmp_path / "run"
+    r = CliRunner().invoke(app, ["identify", str(tiny), "--out", str(out), "--init", "prior", "--iters", "0", "--no-video"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["iterations"] == 0 and m["init"] == "prior"
+    bad = CliRunner().invoke(app, ["identify", str(tmp_path / "missing"), "--out", str(out)])
+    assert bad.exit_code == 2 and "scene.json" in bad.output
+
+
+@pytest.mark.slow
+def test_recovers_E_within_10_percent_from_3x_off(tmp_path):
+    from endogsim.synth import synthesize
+
+    folder = synthesize("tiny", tmp_path / "tiny10", seed=0)
+    pb = load_problem(folder)
+    cfg = IdentifyConfig(iters=25, render_scale=0.5, grad_mode="frame", optimize_nu=False, patience=8)
+    res = identify(pb, field_from_truth(pb, 3.0), cfg, run_dir=tmp_path / "run")
+    assert abs(res.field[1].E / 2500.0 - 1) < 0.10, res.field[1].E

@@ -1,0 +1,248 @@
+"""Benchmark scene generator (endogsim.synth): round trip, determinism, flow, masks, errors, real data."""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endogsim.errors import DataError
+from endogsim.synth import load_scene_truth, suite_scene_names, synthesize
+from endogsim.synth.mpm import MPMProblem, cfl_number, run_mpm
+from endogsim.synth.scenes import build_procedural
+
+TINY_FRAMES = 5
+
+
+def _shared_data() -> Path:
+    env = os.environ.get("ENDOGSIM_SHARED_DATA")
+    return Path(env) if env else (Path(__file__).parents[1] / ".." / "shared" / "data").resolve()
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return synthesize("tiny", tmp_path_factory.mktemp("synth") / "tiny", seed=0, frames=TINY_FRAMES)
+
+
+def _read(path, flags):
+    import cv2
+
+    img = cv2.imread(str(path), flags)
+    assert img is not None, path
+    return img
+
+
+def test_tiny_folder_layout_and_scene_json(tiny):
+    import cv2
+
+    truth = load_scene_truth(tiny)
+    assert truth.name == "tiny" and truth.frames == TINY_FRAMES and truth.seed == 0
+    H, W = truth.camera.height, truth.camera.width
+    for sub, n in (("images", TINY_FRAMES), ("depth", TINY_FRAMES), ("masks", TINY_FRAMES), ("object_masks", TINY_FRAMES)):
+        assert len(list((tiny / sub).glob("*.png"))) == n, sub
+    assert len(list((tiny / "flow").glob("*.flow.npy"))) == TINY_FRAMES - 1
+    pb = np.load(tiny / "poses_bounds.npy")
+    assert pb.shape == (TINY_FRAMES, 17)
+    assert pb[0, 4] == H and pb[0, 9] == W and pb[0, 14] == pytest.approx(truth.camera.K[0][0])
+    depth = _read(tiny / "depth" / "frame-000000.depth.png", cv2.IMREAD_UNCHANGED)
+    assert depth.dtype == np.uint16 and depth.shape == (H, W)
+    z = depth[depth > 0] / truth.depth_scale
+    assert 0.02 < z.min() and z.max() < 0.1  # metres: camera 5 cm from the tissue
+    # Ground truth in physical units, the tool rigid, the tissue in the in-vivo kPa regime.
+    tissue = truth.object("tissue")
+    assert not tissue.rigid and 500 <= tissue.E <= 20000 and 0 < tissue.nu < 0.5 and 900 < tissue.density < 1200
+    assert any(o.rigid for o in truth.objects)
+    sc = truth.scenario
+    assert len(sc.tools[0].transforms) == TINY_FRAMES
+    assert sc.ground_truth.cfl < 0.5 and sc.identification.cfl < 0.5
+    raw = json.loads((tiny / "scene.json").read_text())
+    assert raw["objects"][0]["class"] == "liver" and "E" in raw["objects"][0]
+
+
+def test_tiny_loads_with_the_endonerf_loader(tiny):
+    io = pytest.importorskip("endogsim.io")
+    if not hasattr(io, "load_scene"):
+        pytest.skip("endogsim.io.load_scene not available yet")
+    scene = io.load_scene(tiny)
+    truth = load_scene_truth(tiny)
+    assert scene.frames.shape == (TINY_FRAMES, truth.camera.height, truth.camera.width, 3)
+    if scene.depth is not None:
+        assert scene.depth.shape == scene.frames.shape[:3]
+    assert scene.tool_mask is not None
+
+
+def test_masks_and_object_ids_agree_with_gaussians(tiny):
+    import cv2
+
+    from endogsim.gaussians.ply import read_ply
+
+    truth = load_scene_truth(tiny)
+    g = read_ply(tiny / "gaussians_t0.ply")
+    ids = {o.id for o in truth.objects}
+    assert set(np.unique(g.object_ids.numpy()).tolist()) == ids
+    om = _read(tiny / "object_masks" / "frame-000000.png", cv2.IMREAD_UNCHANGED)
+    assert om.dtype == np.uint16 and set(np.unique(om).tolist()) <= ids | {0}
+    tool = {o.id for o in truth.objects if o.rigid}
+    mask = _read(tiny / "masks" / "frame-000000.mask.png", cv2.IMREAD_GRAYSCALE)
+    assert np.array_equal(mask == 255, np.isin(om, list(tool)))
+    assert 0.01 < (mask == 255).mean() < 0.6
+    # Project tissue Gaussian centres: the id mask shows the tissue id where the tool does not cover them.
+    K = np.asarray(truth.camera.K)
+    tissue_id = truth.object("tissue").id
+    sel = g.object_ids.numpy() == tissue_id
+    uvw = g.means.numpy()[sel] @ K.T
+    px = np.floor(uvw[:, :2] / uvw[:, 2:]).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < om.shape[1]) & (px[:, 1] >= 0) & (px[:, 1] < om.shape[0])
+    hit = om[px[inside, 1], px[inside, 0]]
+    assert np.mean((hit == tissue_id) | np.isin(hit, list(tool))) > 0.99
+
+
+def test_ground_truth_flow_explains_the_image_motion(tiny):
+    from endogsim.evaluate.flow_metrics import warp_backward
+    from endogsim.synth.evaluate_flow import read_scene_flow
+
+    frames, flows, valid = read_scene_flow(tiny)
+    assert flows.shape == (TINY_FRAMES - 1, *frames.shape[1:3], 2) and flows.dtype == np.float32
+    moved = np.linalg.norm(flows, axis=-1).max(axis=(1, 2))
+    assert moved.max() > 0.5  # the tool and tissue do move (pixels per frame)
+    for t in range(TINY_FRAMES - 1):
+        if moved[t] < 0.2:
+            continue
+        warped = warp_backward(frames[t + 1], flows[t])
+        m = valid[t][..., None].repeat(3, -1)
+        err_flow = np.abs(warped - frames[t])[m].mean()
+        err_zero = np.abs(frames[t + 1] - frames[t])[m].mean()
+        assert err_flow < 0.75 * err_zero, (t, err_flow, err_zero)
+
+
+def test_deterministic_for_a_seed(tmp_path, tiny):
+    a = synthesize("tiny", tmp_path / "a", seed=0, frames=TINY_FRAMES)
+    c = synthesize("tiny", tmp_path / "c", seed=1, frames=2)
+    for name in ("images/frame-000002.color.png", "depth/frame-000002.depth.png", "object_masks/frame-000002.png"):
+        assert (a / name).read_bytes() == (tiny / name).read_bytes(), name
+    assert np.array_equal(np.load(a / "flow/frame-000001.flow.npy"), np.load(tiny / "flow/frame-000001.flow.npy"))
+    assert (a / "images/frame-000000.color.png").read_bytes() != (c / "images/frame-000000.color.png").read_bytes()
+
+
+def test_bad_names_and_options_are_clear_errors(tmp_path):
+    with pytest.raises(DataError, match="unknown benchmark scene"):
+        synthesize("no_such_scene", tmp_path / "x")
+    with pytest.raises(DataError, match="frames"):
+        synthesize("tiny", tmp_path / "x", frames=1)
+    with pytest.raises(DataError, match="scale"):
+        synthesize("tiny", tmp_path / "x", scale=-1)
+    with pytest.raises(DataError, match="no such folder"):
+        synthesize("x", tmp_path / "x", from_dir=tmp_path / "missing")
+    from typer.testing import CliRunner
+
+    from endogsim.cli.main import app
+
+    res = CliRunner().invoke(app, ["synth", "no_such_scene", "--out", str(tmp_path / "y")])
+    assert res.exit_code == 2 and "unknown benchmark scene" in res.output
+
+
+@pytest.mark.parametrize("name", suite_scene_names())
+def test_every_suite_scene_builds_within_stability_limits(name):
+    b = build_procedural(name, seed=0, frames=4, scale=0.25)
+    soft = [o for o in b.objects if not o.rigid]
+    assert soft and all(500 <= o.E <= 20000 for o in soft)  # in-vivo kPa regime, Pa units
+    assert b.identification.cfl < 0.5 and b.ground_truth.cfl < 0.5
+    dx = b.box_size / b.ground_truth.grid
+    inside = (b.particles > b.box_lo + 2 * dx) & (b.particles < b.box_lo + b.box_size - 2 * dx)
+    assert inside.all()
+    assert b.anchored.any() and not b.anchored.all()
+    assert len(b.tools) == 1 and b.tools[0][1].offsets.shape == (4, 3)
+
+
+def test_suite_materials_lie_in_the_priors_in_vivo_range():
+    prior = pytest.importorskip("endogsim.materials.prior")
+    from endogsim.synth.spec import load_suite
+
+    table = prior.load_prior_table()["classes"]
+    for name, s in load_suite()["scenes"].items():
+        for o in s["objects"] + [s["tool"]]:
+            rng = table[o["class"]]["in_vivo"]
+            assert rng["E_min"] <= o["E"] <= rng["E_max"], (name, o["name"])
+            assert table[o["class"]]["rigid"] == o["rigid"], (name, o["name"])
+
+
+def test_suite_materials_are_distinct_per_scene():
+    from endogsim.synth.spec import load_suite
+
+    suite = load_suite()
+    values = [(o["E"], o["nu"]) for s in suite["scenes"].values() for o in s["objects"]]
+    assert len(set(values)) == len(values)
+
+
+def _block(n=6, spacing=0.004, **kw):
+    ax = (np.arange(n) + 0.5) * spacing
+    x = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) + 0.04
+    P = len(x)
+    E, nu = 3000.0, 0.4
+    defaults = dict(x=x, vol=np.full(P, spacing ** 3), mu=np.full(P, E / (2 * (1 + nu))),
+                    lam=np.full(P, E * nu / ((1 + nu) * (1 - 2 * nu))), density=np.full(P, 1000.0),
+                    anchored=np.zeros(P, bool), box_lo=np.zeros(3), box_size=0.12, grid=30, dt=1e-4,
+                    substeps=20, frames=4, gravity=np.zeros(3))
+    defaults.update(kw)
+    return MPMProblem(**defaults)
+
+
+def test_mpm_free_fall_and_rest():
+    # An unconstrained elastic block in uniform gravity falls as a rigid body: x = x0 + g t^2 / 2.
+    p = _block(gravity=np.array([0.0, 0.0, 9.81]))
+    r = run_mpm(p)
+    t = (p.frames - 1) * p.substeps * p.dt
+    dz = (r.x[-1] - r.x[0])[:, 2]
+    assert np.allclose(dz, 0.5 * 9.81 * t * t, rtol=0.02)
+    assert np.allclose(r.F[-1], np.eye(3), atol=1e-6)
+    # Without loads nothing moves; anchored particles never move.
+    still = run_mpm(_block())
+    assert np.abs(still.x[-1] - still.x[0]).max() < 1e-12
+    assert cfl_number(3000.0, 0.4, 1000.0, 1e-4, 0.004) < 0.1
+
+
+def test_from_real_data_folders(tmp_path):
+    data = _shared_data()
+    done = 0
+    for name in ("cholecseg8k_clip", "endonerf_pulling"):
+        src = data / name
+        if not src.is_dir():
+            continue
+        out = synthesize(name, tmp_path / name, seed=0, frames=3, from_dir=src, width=96)
+        truth = load_scene_truth(out)
+        assert truth.source == str(src)
+        assert any(o.rigid for o in truth.objects) and any(not o.rigid for o in truth.objects)
+        for o in truth.deformable:
+            assert 300 <= o.E <= 20000 and 0.3 <= o.nu <= 0.45
+        assert truth.scenario.identification.cfl <= 0.46
+        assert len(list((out / "images").glob("*.png"))) == 3
+        done += 1
+        if name == "cholecseg8k_clip":
+            names = {o.name for o in truth.objects}
+            assert {"liver", "gallbladder", "grasper"} <= names
+    if not done:
+        pytest.skip(f"no real data under {data}")
+
+
+test_from_real_data_folders = pytest.mark.realdata(test_from_real_data_folders)
+
+
+def test_skinning_reproduces_a_uniform_deformation():
+    # Particles under a uniform affine map x -> A x + b: the Gaussians' F is exact and their centres follow
+    # the map up to the blending error of inverse-distance weights (a small fraction of the displacement).
+    from endogsim.synth.mpm import skin_gaussians
+
+    rng = np.random.default_rng(0)
+    p0 = rng.uniform(0, 0.02, (300, 3))
+    g0 = rng.uniform(0.003, 0.017, (50, 3))
+    A = np.array([[1.1, 0.05, 0.0], [0.0, 0.95, 0.02], [0.01, 0.0, 1.03]])
+    b = np.array([0.001, -0.002, 0.0005])
+    px = np.stack([p0, p0 @ A.T + b])
+    pF = np.stack([np.tile(np.eye(3), (300, 1, 1)), np.tile(A, (300, 1, 1))])
+    gx, gF = skin_gaussians(g0, np.zeros(50, int), p0, np.zeros(300, int), px, pF)
+    assert np.allclose(gx[0], g0) and np.allclose(gF[1], A)
+    target = g0 @ A.T + b
+    err = np.linalg.norm(gx[1] - target, axis=1)
+    disp = np.linalg.norm(target - g0, axis=1)
+    assert err.max() < 0.15 * disp.max() and err.mean() < 0.05 * disp.mean()
