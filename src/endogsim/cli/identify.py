@@ -62,9 +62,3 @@ def register(app: typer.Typer) -> None:
         print_table("Scores", ["metric", "value"], scores)
         console.print(f"wrote {out}")
 
-
-def register_bench(bench_app: typer.Typer) -> None:
-    """Add ``bench identify`` to the ``bench`` sub-app (implemented in :mod:`endogsim.bench.identify`)."""
-    from endogsim.bench.identify import register as _register
-
-    _register(bench_app)
