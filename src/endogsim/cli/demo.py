@@ -1,37 +1,108 @@
-"""``endogsim demo``: the built-in demonstration on procedural data (no data, no weights, no network)."""
+"""``endogsim demo`` and ``endogsim run``: the end-to-end pipeline (no data, weights or network needed for the demo)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
 from endogsim.cli.common import user_errors
 
 
+def _stage_printer():
+    from endogsim.cli.common import console
+
+    def on_stage(name: str, status: str) -> None:
+        if status == "start":
+            console.print(f"[bold]{name}[/bold] ...")
+        elif status == "skip":
+            console.print(f"[dim]{name}: done earlier, skipped[/dim]")
+        else:
+            console.print(f"{name}: done")
+
+    return on_stage
+
+
+def _fmt_optional(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``demo`` to the root ``app``."""
+    """Add ``demo`` and ``run`` to the root ``app``."""
 
     @app.command("demo")
     @user_errors
     def demo_cmd(
-        out: Path = typer.Option(Path("demo"), "--out", "-o", help="Output folder."),
-        frames: int = typer.Option(48, "--frames", help="Frames of the preview render."),
-        width: int = typer.Option(320, "--width", help="Image width (pixels); height keeps 5:4."),
+        out: Path = typer.Option(Path("demo"), "--out", "-o", help="Output folder (re-run to resume)."),
+        scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
+        recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
+        identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
+        preview: bool = typer.Option(False, "--preview", help="Only render the procedural scene under a moving "
+                                     "camera and tool (seconds): OUT/render.mp4 and OUT/frames/."),
+        frames: int = typer.Option(48, "--preview-frames", help="Frames of the --preview render."),
     ) -> None:
-        """Render a built-in procedural tissue + instrument scene under a moving camera and tool:
-        OUT/render.mp4 and OUT/frames/*.png."""
+        """The whole pipeline on a built-in procedural scene: synthesise a video with known materials, reconstruct
+        it from the frames alone, initialise materials from the prior, identify them, simulate a new
+        interaction, write OUT/run/report.html, and print recovered vs ground-truth materials."""
         from endogsim.cli.common import console, print_table, progress
-        from endogsim.pipeline.preview import PreviewConfig, render_preview
 
-        if frames < 2 or width < 32:
-            raise typer.BadParameter("--frames must be >= 2 and --width >= 32")
-        cfg = PreviewConfig(width=width, height=round(width * 0.8), frames=frames)
-        with progress() as bar:
-            task = bar.add_task("render preview", total=frames)
-            summary = render_preview(out, cfg, progress=lambda k, n: bar.update(task, completed=k))
-        print_table("endogsim demo", ["output", "value"],
-                    [("video", summary["video"]), ("frames", summary["frames_dir"]),
-                     ("Gaussians", summary["num_gaussians"]),
-                     ("seconds per frame", f"{summary['seconds_per_frame']:.2f}")])
-        console.print(f"wrote {out}")
+        if preview:
+            from endogsim.pipeline.preview import PreviewConfig, render_preview
+
+            if frames < 2:
+                raise typer.BadParameter("--preview-frames must be >= 2")
+            with progress() as bar:
+                task = bar.add_task("render preview", total=frames)
+                summary = render_preview(out, PreviewConfig(frames=frames),
+                                         progress=lambda k, n: bar.update(task, completed=k))
+            console.print(f"wrote {summary['video']} and {summary['frames_dir']}/ ({summary['num_gaussians']} Gaussians)")
+            return
+
+        from endogsim.pipeline.demo import DemoConfig, run_demo
+
+        cfg = DemoConfig(scene=scene)
+        if recon_iters is not None:
+            cfg.recon["iters"] = recon_iters
+        if identify_iters is not None:
+            cfg.identify["iters"] = identify_iters
+        s = run_demo(out, cfg, on_stage=_stage_printer())
+        print_table("Recovered vs ground-truth materials", ["object", "E true (Pa)", "E prior (Pa)", "E identified (Pa)",
+                                                            "nu true", "nu identified"],
+                    [(r["object"], f"{r['E_true']:.4g}", _fmt_optional(r["E_init"], ".4g"),
+                      _fmt_optional(r["E_identified"], ".4g"), f"{r['nu_true']:.3f}",
+                      _fmt_optional(r["nu_identified"], ".3f")) for r in s["materials"]])
+        print_table("Scores", ["metric", "value"],
+                    [("RE mean, prior init", _fmt_optional(s["re_mean_init"], ".3f")),
+                     ("RE mean, identified", _fmt_optional(s["re_mean"], ".3f")),
+                     ("EPE (px), identified", _fmt_optional(s["epe"], ".3f")),
+                     ("reconstruction PSNR, masked (dB)", _fmt_optional(s["recon_psnr_masked"], ".2f")),
+                     ("total seconds", f"{s['seconds']:.0f}")])
+        console.print(f"report: {s['report']}")
+
+    @app.command("run")
+    @user_errors
+    def run_cmd(
+        data: Path = typer.Argument(..., help="Dataset folder (EndoNeRF, CholecSeg8K, `endogsim synth` output) or video."),
+        out: Path = typer.Option(..., "--out", "-o", help="Run folder (re-run to resume the stages not yet done)."),
+        materials_backend: str = typer.Option("prior", "--materials-backend",
+                                              help="manual | prior | mllm | replay | a material JSON file."),
+        truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth scene folder (benchmark protocol)."),
+        interaction: str = typer.Option("poke", "--interaction", help="New interaction to simulate (name or JSON; "
+                                        "'none' to skip)."),
+        recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
+        identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
+        resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
+    ) -> None:
+        """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
+        stages already done."""
+        from endogsim.cli.common import console
+        from endogsim.pipeline.run import PipelineConfig, run_pipeline
+
+        recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
+        ident = {"iters": identify_iters} if identify_iters is not None else {}
+        cfg = PipelineConfig(materials_backend=materials_backend, recon=recon, identify=ident,
+                             interaction=None if interaction == "none" else interaction)
+        state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer())
+        console.print(f"report: {state['stages'].get('report', {}).get('report')}")
+

@@ -32,7 +32,7 @@ def _register() -> None:
     from endogsim.cli import demo, identify, info, materials, reconstruct, synth  # noqa: F401
     from endogsim.bench import identify as bench_identify, mpm as bench_mpm, render as bench_render  # noqa: F401
 
-    for module in (info, demo, synth, reconstruct, identify):
+    for module in (info, demo, synth, reconstruct, identify):  # demo also adds `run`
         module.register(app)
     materials.register(materials_app)
     for bench in (bench_render, bench_mpm, bench_identify):
