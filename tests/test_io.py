@@ -91,6 +91,24 @@ def test_endonerf_downscale_max_frames_jpg_depth_scale(tmp_path):
     assert set(np.unique(s.object_masks)) <= {0, 1}
 
 
+def test_endonerf_reads_depth_scale_and_frame_rate_from_scene_json(tmp_path):
+    # An `endogsim synth` folder: 16-bit depth in 0.1 mm steps (10000 units per metre), 5 ms frames.
+    import json
+
+    root = make_endonerf(tmp_path / "scene", depth_bits=16)
+    (root / "scene.json").write_text(json.dumps({"depth_scale": 10000.0, "scenario": {"frame_dt": 0.005}}))
+    s = load_scene(root)
+    np.testing.assert_allclose(s.depth[2, 5, 5], 52 / 10000.0, rtol=1e-6)
+    np.testing.assert_allclose(s.times, np.arange(N) * 0.005)
+    explicit = load_scene(root, depth_scale=1e-3, fps=30)  # explicit arguments win
+    np.testing.assert_allclose(explicit.depth[2, 5, 5], 52e-3, rtol=1e-6)
+    np.testing.assert_allclose(explicit.times, np.arange(N) / 30.0)
+    (root / "scene.json").write_text(json.dumps({"depth_scale": -1}))
+    with pytest.raises(DataError, match="depth_scale") as e:
+        load_scene(root)
+    _names_file(e, root / "scene.json")
+
+
 def test_endonerf_without_masks_is_all_tissue(tmp_path):
     s = load_scene(make_endonerf(tmp_path / "s", masks=False))
     assert s.object_masks is None and list(s.labels) == [0] and s.tool_mask is None

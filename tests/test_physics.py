@@ -297,9 +297,9 @@ def test_plasticity_keeps_the_elastic_strain_inside_the_yield_surface():
 
 
 def test_matches_the_pure_pytorch_reference_solver():
-    # The benchmark's ground-truth generator (endogsim.synth.mpm, float64 PyTorch, same MLS-MPM) and this
+    # The pure-PyTorch reference solver (endogsim.physics.reference, float64, same MLS-MPM) and this
     # Warp solver must agree on a scene both can express: an elastic block pushed by a moving capsule.
-    from endogsim.synth.mpm import Capsule, MPMProblem, run_mpm
+    from endogsim.physics.reference import Capsule, MPMProblem, run_mpm
 
     E, nu, rho = 2e4, 0.3, 1000.0
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.06), 0.002)

@@ -61,4 +61,9 @@ def register(app: typer.Typer) -> None:
                                   from_dir=from_dir, progress=cb, interaction=interaction)
             else:
                 path = synthesize(scene, out, seed=seed, frames=frames, scale=scale, progress=cb)
-        console.print(f"wrote {path}")
+        from endogsim.synth.spec import load_scene_truth
+
+        sc = load_scene_truth(path).scenario
+        gt, idn = sc.ground_truth, sc.identification
+        console.print(f"wrote {path} (ground truth: grid {gt.grid}^3, {gt.substeps} substeps of {gt.dt:.2g} s; "
+                      f"identification: grid {idn.grid}^3, {idn.substeps} substeps of {idn.dt:.2g} s)")

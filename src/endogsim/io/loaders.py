@@ -15,6 +15,8 @@ Conventions
   metres, so the mm reading is our assumption (it matches the bounds and a ~5-10 cm working distance). We convert to metres with ``depth_scale`` metres per stored unit, default
   ``1e-3`` (millimetres). 0 means invalid and stays 0. Depth may also be float ``.npy`` or ``.tiff``
   files (also multiplied by ``depth_scale``); NaN, inf or negative values are refused.
+- Folders written by ``endogsim synth`` carry a ``scene.json``: its ``depth_scale`` (stored units per
+  metre) and ``scenario.frame_dt`` (seconds) replace the EndoNeRF defaults; explicit arguments still win.
 - EndoNeRF times: the LLFF file holds no frame rate; the sequences are ~30 fps stereo videos, so the
   default is ``ENDONERF_FPS = 30``.
 - CholecSeg8K: no intrinsics are published. We assume a pinhole with a horizontal field of view of
@@ -25,6 +27,7 @@ Conventions
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from pathlib import Path
@@ -226,8 +229,28 @@ def _load_depth(depth_dir: Path, n_all: int, n: int, w0: int, h0: int, size: tup
     return np.stack(out)
 
 
+def _synth_meta(folder: Path) -> tuple[float | None, float | None]:
+    """(metres per stored depth unit, frame rate in Hz) from an ``endogsim synth`` folder's ``scene.json``,
+    None for what it does not say (or when there is no ``scene.json``)."""
+    path = folder / "scene.json"
+    if not path.is_file():
+        return None, None
+    try:
+        meta = json.loads(path.read_text())
+        units_per_m = meta.get("depth_scale")
+        frame_dt = (meta.get("scenario") or {}).get("frame_dt")
+        depth_scale = None if units_per_m is None else 1.0 / float(units_per_m)
+        fps = None if frame_dt is None else 1.0 / float(frame_dt)
+    except (ValueError, TypeError, AttributeError, ZeroDivisionError) as exc:
+        raise DataError(f"{path}: malformed scene.json ({exc})") from None
+    for name, v in (("depth_scale", depth_scale), ("scenario.frame_dt", fps)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise DataError(f"{path}: {name} must be a positive number")
+    return depth_scale, fps
+
+
 def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int | None = None,
-                  fps: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
+                  fps: float | None = None, depth_scale: float | None = None,
                   mask_dir: str | Path | None = None) -> Scene:
     """Load an EndoNeRF folder: ``images/``, optional ``depth/`` and ``masks/``, ``poses_bounds.npy``.
 
@@ -235,8 +258,10 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         folder: the dataset folder.
         downscale: factor >= 1 by which images, depth, masks and K are reduced.
         max_frames: keep only the first frames.
-        fps: frame rate for ``times`` (default ``ENDONERF_FPS`` = 30; the LLFF file holds none).
-        depth_scale: metres per stored depth unit (default 1e-3: EndoNeRF depth is ~millimetres).
+        fps: frame rate for ``times`` (default: 1 / ``scenario.frame_dt`` of a ``scene.json`` in the folder,
+            else ``ENDONERF_FPS`` = 30; the LLFF file holds none).
+        depth_scale: metres per stored depth unit (default: 1 / ``depth_scale`` of a ``scene.json`` in the
+            folder, else 1e-3: EndoNeRF depth is ~millimetres).
         mask_dir: tool-mask folder to use instead of ``folder/masks``.
     Returns:
         a Scene with K from the LLFF focal (cx, cy at the image centre; without ``poses_bounds.npy``
@@ -268,6 +293,9 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         K0 = default_K(w0, h0, VIDEO_HFOV_DEG)
     K = _scale_K(K0, w0, h0, w, h)
 
+    meta_depth_scale, meta_fps = _synth_meta(folder)
+    if depth_scale is None:
+        depth_scale = meta_depth_scale or DEFAULT_DEPTH_SCALE
     depth = None
     if (folder / "depth").is_dir():
         depth = _load_depth(folder / "depth", n_all, n, w0, h0, (w, h), depth_scale)
@@ -275,7 +303,7 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
     masks = None
     if mask_dir is not None or mdir.is_dir():
         masks = _load_endonerf_style_masks(mdir, n_all, n, w0, h0, (w, h))
-    rate = fps or ENDONERF_FPS
+    rate = fps or meta_fps or ENDONERF_FPS
     return Scene(
         frames=frames, times=np.arange(n, dtype=np.float64) / rate, K=K, depth=depth,
         object_masks=masks,

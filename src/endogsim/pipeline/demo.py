@@ -32,6 +32,8 @@ class DemoConfig:
         recon: ReconConfig overrides for the reconstruction stage.
         identify: IdentifyConfig overrides for the identification stage.
         interaction: the new interaction simulated with the identified materials.
+        tool_motion: "truth" (the benchmark protocol: identification gets the ground truth's boundary settings,
+            tool trajectory included) or "reconstructed" (the tool's tracked motion, as on a real video).
     """
 
     scene: str = "tiny"
@@ -40,6 +42,7 @@ class DemoConfig:
     recon: dict[str, Any] = field(default_factory=lambda: {"resolution_scale": 1.0})
     identify: dict[str, Any] = field(default_factory=dict)
     interaction: str | None = "poke"
+    tool_motion: str = "truth"
 
 
 def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
@@ -70,7 +73,7 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
     truth = load_scene_truth(truth_dir)
     state = run_pipeline(truth_dir, out / "run",
                          PipelineConfig(materials_backend="prior", recon=cfg.recon, identify=cfg.identify,
-                                        interaction=cfg.interaction),
+                                        interaction=cfg.interaction, tool_motion=cfg.tool_motion),
                          truth=truth_dir, on_stage=on_stage)
     ident = state["stages"]["identify"]
     rows = []

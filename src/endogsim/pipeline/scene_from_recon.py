@@ -12,8 +12,9 @@ and ``endogsim simulate`` read it unchanged):
 
 Two ways to get the scenario:
   * ``truth`` given (the benchmark protocol, DESIGN.md section 8): the ground-truth scene's boundary settings
-    (sim box, anchors, extrusion, gravity, tool capsule) and its ground-truth materials and flow are reused;
-    only the Gaussians and, by default, the tool motion come from the reconstruction.
+    (sim box, anchors, extrusion, gravity, tool capsule shape) and its ground-truth materials and flow are
+    reused; the Gaussians come from the reconstruction, the tool motion from the reconstruction or (the
+    paper's "same boundary settings") from the ground truth.
   * no ``truth`` (real video): everything is derived from the reconstruction with :class:`ScenarioDefaults`.
     Gravity defaults to zero: frame 0 is observed at rest under unknown loads (insufflation, attachments),
     so switching gravity on at t = 0 would make the tissue sag in a way the video never shows.
@@ -173,9 +174,12 @@ def scene_from_reconstruction(
         sel = g0.object_ids == oid
         if int(sel.sum()) < 4:
             continue
-        tip, end, radius = fit_tool_capsule(g0.means[sel].detach().double().numpy())
+        gt_tool = next((t for t in (gt.scenario.tools if gt else []) if t.object_id == oid), None)
+        if gt_tool is not None:  # benchmark protocol: the ground truth's collider shape
+            tip, end, radius = np.asarray(gt_tool.tip), np.asarray(gt_tool.end), float(gt_tool.radius)
+        else:
+            tip, end, radius = fit_tool_capsule(g0.means[sel].detach().double().numpy())
         if tool_motion == "truth" or oid not in tool_tf:
-            gt_tool = next((t for t in (gt.scenario.tools if gt else []) if t.object_id == oid), None)
             if gt_tool is None:
                 raise DataError(f"tool {oid}: no reconstructed motion and no ground-truth trajectory")
             transforms = np.asarray(gt_tool.transforms, dtype=np.float64)[:T]

@@ -3,7 +3,8 @@
 * :func:`synthesize` (``endogsim synth``): build, simulate and write one scene folder.
 * :func:`load_scene_truth`: read its ``scene.json`` (objects, scenario, camera, seed) into typed records.
 * :mod:`endogsim.synth.procedural`: reusable geometry / texture builders (tissue surfaces, tools).
-* :mod:`endogsim.synth.mpm`: the pure-PyTorch MLS-MPM reference used for the ground-truth videos.
+* Ground-truth videos are simulated by :mod:`endogsim.physics` (the Warp MLS-MPM identification also uses)
+  at a finer discretisation than identification's; both are recorded in ``scene.json``.
 * :func:`dis_epe_table`: EPE of an optical-flow estimator against the ground-truth flow of scene folders.
 """
 

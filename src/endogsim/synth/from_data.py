@@ -28,8 +28,8 @@ from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.synth import procedural as proc
-from endogsim.synth.mpm import Capsule, p_wave_speed
-from endogsim.synth.scenes import BuiltScene, sim_settings, tissue_from_surface, tool_offsets
+from endogsim.physics import MPMConfig, max_stable_E
+from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface, tool_offsets, tool_truth
 from endogsim.synth.spec import ObjectTruth, load_suite
 
 __all__ = ["build_from_data", "CHOLECSEG_CLASSES", "PRIOR_FALLBACK", "read_first_frame"]
@@ -226,7 +226,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
         if not m.any():
             continue
         part = tissue_from_surface(px[m], edge_px[m] * foot[m], 0.008, p_sp,
-                                   {"back_face": True, "border": 0.005}, o.id)
+                                   {"back_face": True, "border": 0.005}, o.id, cam)
         parts.append(part)
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
@@ -258,24 +258,23 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
                                E=2.0e11, nu=0.3, density=7850.0))
     tool_g = proc.tool_gaussians(tip, end, radius, 0.6 * float(np.median(foot)) * 2, tool_obj_id, seed=seed,
                                  jaw=interaction == "pull")
-    capsule = Capsule(a=tip, b=end, radius=radius, offsets=tool_offsets(kf, T))
+    offsets = tool_offsets(kf, T)
+    tool = tool_truth(tool_obj_id, tip, end, radius, offsets)
 
     # Cubic sim box around the particles and the tool's path through the tissue.
     tissue_pts = np.concatenate([cat["x"], pts[~np.isin(ids, list(tool_ids))]])
-    lo = np.minimum(tissue_pts.min(0), (tip + capsule.offsets.min(0)))
-    hi = np.maximum(tissue_pts.max(0), (tip + capsule.offsets.max(0)))
-    grid_gt = int(ident["sim_grid"])
-    size = float((hi - lo).max()) / (1 - 2 * 3 / grid_gt) + 0.004
+    lo = np.minimum(tissue_pts.min(0), (tip + offsets.min(0)))
+    hi = np.maximum(tissue_pts.max(0), (tip + offsets.max(0)))
+    coarsest = min(int(ident["gt_grid"]), int(ident["ident_grid"]))  # 3 wall cells of either grid stay clear
+    size = float((hi - lo).max()) / (1 - 2 * 3 / coarsest) + 0.004
     box_lo = (lo + hi) / 2 - size / 2
 
     # Keep every object inside the stability limit at the identification defaults (CFL <= 0.45).
-    dx_ident = size / ident["ident_grid"]
+    ident_cfg = MPMConfig(grid_res=int(ident["ident_grid"]), frame_dt=float(ident["frame_dt"]),
+                          substeps_per_frame=max(1, round(ident["frame_dt"] / ident["ident_dt"])), cfl_number=0.45)
     for o in soft:
-        c_max = 0.45 * dx_ident / ident["ident_dt"]
-        if p_wave_speed(o.E, o.nu, o.density) > c_max:
-            o.E = o.E * (c_max / p_wave_speed(o.E, o.nu, o.density)) ** 2
-    gt = sim_settings(objects, size, grid_gt, ident["frame_dt"], ident["ident_dt"] / ident["gt_refine"], ident["gt_cfl"])
-    idn = sim_settings(objects, size, ident["ident_grid"], ident["frame_dt"], ident["ident_dt"])
+        o.E = min(o.E, max_stable_E(o.nu, o.density, ident_cfg, size))
+    gt, idn = ground_truth_and_identification(ident, objects, size, [tool], name or data_dir.name)
 
     allg = Gaussians.concat([g, tool_g])
     n_g = len(g)
@@ -287,7 +286,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     return BuiltScene(
         name=name, camera=cam, frames=T, frame_dt=ident["frame_dt"], gaussians=allg, tissue_gaussians=is_tissue,
         tool_gaussians={tool_obj_id: is_tool}, particles=cat["x"], particle_ids=cat["ids"], particle_vol=cat["vol"],
-        anchored=cat["anchored"], objects=objects, tools=[(tool_obj_id, capsule)], box_lo=box_lo, box_size=size,
+        anchored=cat["anchored"], objects=objects, tools=[tool], box_lo=box_lo, box_size=size,
         gravity=np.asarray(ident["gravity"], float), damping=ident["damping"], ground_truth=gt, identification=idn,
         boundary_conditions=[{"type": "box_walls", "cells": 2},
                              {"type": "anchors", "object": "all_tissue", "back_face": True, "border": 0.005,

@@ -12,6 +12,12 @@ Folder written by :func:`synthesize` (T frames, H x W pixels, names as in EndoNe
   particles_t0.npz                  MPM particles: x [P, 3] m, object_id [P], vol [P] m^3, anchored [P]
   scene.json                        objects, scenario, camera, seed (see endogsim.synth.spec)
 
+The ground truth is simulated by the Warp MLS-MPM of :mod:`endogsim.physics` -- the same simulator
+identification differentiates -- at the scene's finer ``ground_truth`` discretisation (finer grid, more
+substeps than ``identification``; both in scene.json), so the benchmark does not reward matching one
+discretisation. Gaussians follow the particles by :func:`endogsim.physics.bind_gaussians` /
+:func:`endogsim.physics.drive_gaussians`, and tools move rigidly with their per-frame transforms.
+
 The ground-truth flow is the Gaussian flow (:mod:`endogsim.gaussians.flow`) of the simulated Gaussians,
 i.e. exactly the quantity identification compares against.
 """
@@ -27,64 +33,112 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
-from endogsim.synth.mpm import MPMProblem, run_mpm, skin_gaussians
+from endogsim.physics import (
+    Anchor,
+    MPMConfig,
+    Particles,
+    RigidCollider,
+    Scenario,
+    SimBox,
+    bind_gaussians,
+    drive_gaussians,
+    simulate,
+)
 from endogsim.synth.scenes import BuiltScene, build_procedural
-from endogsim.synth.spec import CameraTruth, ScenarioTruth, SceneTruth, ToolTruth
+from endogsim.synth.spec import CameraTruth, ScenarioTruth, SceneTruth
 
-__all__ = ["synthesize", "simulate_built", "render_built", "write_scene_folder", "DEPTH_SCALE"]
+__all__ = ["synthesize", "ground_truth_problem", "simulate_built", "render_built", "write_scene_folder", "DEPTH_SCALE"]
 
 DEPTH_SCALE = 10000.0  # 16-bit depth png units per metre (0.1 mm steps, up to 6.5 m)
 VALID_ALPHA = 0.95
 
 
-def simulate_built(b: BuiltScene, progress: Callable[[int], None] | None = None):
-    """Run the ground-truth MPM. Returns (tissue means [T, Gt, 3], tissue F [T, Gt, 3, 3]) as float64."""
-    mu = {o.id: o.E / (2 * (1 + o.nu)) for o in b.objects}
-    lam = {o.id: o.E * o.nu / ((1 + o.nu) * (1 - 2 * o.nu)) for o in b.objects}
-    rho = {o.id: o.density for o in b.objects}
-    ids = b.particle_ids
-    problem = MPMProblem(
-        x=b.particles, vol=b.particle_vol,
-        mu=np.array([mu[i] for i in ids]), lam=np.array([lam[i] for i in ids]), density=np.array([rho[i] for i in ids]),
-        anchored=b.anchored, box_lo=b.box_lo, box_size=b.box_size, grid=b.ground_truth.grid, dt=b.ground_truth.dt,
-        substeps=b.ground_truth.substeps, frames=b.frames, gravity=b.gravity, tools=[c for _, c in b.tools],
-        damping=b.damping,
-    )
-    res = run_mpm(problem, progress=progress)
-    sel = torch.from_numpy(b.tissue_gaussians)
-    return skin_gaussians(b.gaussians.means[sel].double().numpy(), b.gaussians.object_ids[sel].numpy(),
-                          b.particles, b.particle_ids, res.x, res.F)
+def _wall_cells(b: BuiltScene) -> int:
+    return next((int(bc.get("cells", 2)) for bc in b.boundary_conditions if bc.get("type") == "box_walls"), 2)
 
 
-def _frame_state(b: BuiltScene, tx: np.ndarray, tF: np.ndarray, cov0: torch.Tensor, t: int):
+def ground_truth_problem(b: BuiltScene) -> tuple[Particles, torch.Tensor, torch.Tensor, torch.Tensor, Scenario, MPMConfig]:
+    """The ground-truth simulation of a built scene for :func:`endogsim.physics.simulate`.
+
+    Returns particles, per-object-id E [M] (Pa), nu [M], density [M] (kg/m^3), the scenario (sim box,
+    gravity, anchored particles, capsule tools as point colliders) and the ``ground_truth`` numerics.
+    """
+    from endogsim.identify.problem import capsule_collider_points  # one capsule covering for GT and identification
+
+    gt = b.ground_truth
+    particles = Particles(torch.as_tensor(b.particles, dtype=torch.float32),
+                          torch.as_tensor(b.particle_vol, dtype=torch.float32),
+                          torch.as_tensor(b.particle_ids, dtype=torch.int64))
+    M = max(o.id for o in b.objects) + 1
+    E, nu, rho = torch.ones(M, dtype=torch.float64), torch.zeros(M, dtype=torch.float64), torch.ones(M, dtype=torch.float64)
+    for o in b.objects:
+        E[o.id], nu[o.id], rho[o.id] = o.E, o.nu, o.density
+    colliders = []
+    for tool in b.tools:
+        pts, radius = capsule_collider_points(tool.tip, tool.end, tool.radius, b.box_size / gt.grid)
+        colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(tool.matrices()),
+                                       radius=radius))
+    anchors = [Anchor(kind="fixed", particle_mask=torch.as_tensor(b.anchored))] if b.anchored.any() else []
+    scenario = Scenario(SimBox(tuple(float(v) for v in b.box_lo), float(b.box_size)),
+                        gravity=tuple(float(v) for v in b.gravity), anchors=anchors, colliders=colliders)
+    config = MPMConfig(grid_res=gt.grid, frame_dt=b.frame_dt, substeps_per_frame=gt.substeps, dt=gt.dt,
+                       damping=b.damping, wall="sticky", wall_padding=max(2, _wall_cells(b)),
+                       material_model="fixed_corotated")
+    return particles, E, nu, rho, scenario, config
+
+
+def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor]:
+    """Run the ground-truth simulation and drive the tissue Gaussians with it.
+
+    Returns tissue means [T, Gt, 3] (metres) and covariances [T, Gt, 3, 3] (metres^2) = F Sigma_0 F^T.
+    """
+    particles, E, nu, rho, scenario, config = ground_truth_problem(b)
+    res = simulate(particles, E, nu, rho, scenario, config, b.frames)
+    if res.substeps != b.ground_truth.substeps:  # plan_substeps saw the same inputs when the scene was built
+        raise SimulationError(f"scene {b.name}: the simulator took {res.substeps} substeps per frame, "
+                              f"scene.json records {b.ground_truth.substeps}")
+    tissue = b.gaussians.subset(torch.from_numpy(b.tissue_gaussians))
+    binding = bind_gaussians(tissue.means, tissue.object_ids, particles)
+    means, covs = [], []
+    for t in range(b.frames):
+        m, c, _ = drive_gaussians(tissue, binding, res.positions[t], res.F[t], rotate_colors=False)
+        means.append(m)
+        covs.append(c)
+    return torch.stack(means), torch.stack(covs)
+
+
+def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):
     """World means [N, 3] and covariances [N, 3, 3] of all Gaussians at frame t (float32)."""
-    means = b.gaussians.means.detach().clone().double()
+    means = b.gaussians.means.detach().clone().float()
     cov = cov0.clone()
     tm = torch.from_numpy(b.tissue_gaussians)
-    means[tm] = torch.from_numpy(tx[t])
-    F = torch.from_numpy(tF[t])
-    cov[tm] = F @ cov0[tm] @ F.mT
-    for tool_id, cap in b.tools:
-        sel = torch.from_numpy(b.tool_gaussians[tool_id])
-        means[sel] += torch.from_numpy(cap.offsets[t])
-    return means.float(), cov.float()
+    means[tm] = tx[t].float()
+    cov[tm] = tcov[t].float()
+    for tool in b.tools:
+        sel = torch.from_numpy(b.tool_gaussians[tool.object_id])
+        tf = torch.as_tensor(tool.matrices()[t], dtype=torch.float32)
+        R = tf[:3, :3]
+        means[sel] = means[sel] @ R.T + tf[:3, 3]
+        cov[sel] = R @ cov[sel] @ R.T
+    return means, cov
 
 
-def render_built(b: BuiltScene, tx: np.ndarray, tF: np.ndarray, progress: Callable[[int], None] | None = None) -> dict:
-    """Render every frame: rgb [T,H,W,3], depth [T,H,W] m, alpha [T,H,W], ids [T,H,W] int (0 = background),
+def render_built(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, progress: Callable[[int], None] | None = None) -> dict:
+    """Render every frame of the simulated tissue (``tx``, ``tcov`` from :func:`simulate_built`):
+    rgb [T,H,W,3], depth [T,H,W] m, alpha [T,H,W], ids [T,H,W] int (0 = background),
     flow [T-1,H,W,2] px (t -> t+1), valid [T-1,H,W] bool."""
     g = b.gaussians.detach()
-    cov0 = g.covariances().double()
+    cov0 = g.covariances().float()
     opac = g.opacities.float()
     colors = g.colors_dc.clamp(0, 1).float()
     id_list = sorted({o.id for o in b.objects})
     onehot = (g.object_ids[:, None] == torch.tensor(id_list)[None]).float()
     out: dict[str, list] = {k: [] for k in ("rgb", "depth", "alpha", "ids", "flow", "valid")}
-    states = [_frame_state(b, tx, tF, cov0, t) for t in range(b.frames)]
+    states = [_frame_state(b, tx, tcov, cov0, t) for t in range(b.frames)]
     for t in range(b.frames):
         means, cov = states[t]
         with torch.no_grad():
@@ -107,20 +161,11 @@ def render_built(b: BuiltScene, tx: np.ndarray, tF: np.ndarray, progress: Callab
     return {k: np.stack(v) if v else np.zeros((0,)) for k, v in out.items()}
 
 
-def _scene_truth(b: BuiltScene, seed: int, depth: np.ndarray) -> SceneTruth:
-    tools = []
-    for tool_id, cap in b.tools:
-        mats = []
-        for off in cap.offsets:
-            m = np.eye(4)
-            m[:3, 3] = off
-            mats.append(m.tolist())
-        tools.append(ToolTruth(object_id=tool_id, tip=list(map(float, cap.a)), end=list(map(float, cap.b)),
-                               radius=float(cap.radius), transforms=mats))
+def _scene_truth(b: BuiltScene, seed: int) -> SceneTruth:
     scenario = ScenarioTruth(
         box_lo=[float(v) for v in b.box_lo], box_size=float(b.box_size), gravity=[float(v) for v in b.gravity],
         frame_dt=float(b.frame_dt), damping=float(b.damping), boundary_conditions=b.boundary_conditions,
-        tools=tools, particle_spacing=float(b.particle_spacing), extrusion=b.extrusion,
+        tools=list(b.tools), particle_spacing=float(b.particle_spacing), extrusion=b.extrusion,
         ground_truth=b.ground_truth, identification=b.identification,
     )
     cam = CameraTruth(K=b.camera.K.double().tolist(), width=b.camera.width, height=b.camera.height,
@@ -171,7 +216,7 @@ def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path
         write_ply(b.gaussians, tmp / "gaussians_t0.ply")
         np.savez(tmp / "particles_t0.npz", x=b.particles.astype(np.float64), object_id=b.particle_ids,
                  vol=b.particle_vol, anchored=b.anchored)
-        truth = _scene_truth(b, seed, r["depth"])
+        truth = _scene_truth(b, seed)
         d = truth.to_json()
         d.update({k: v for k, v in b.extra.items() if k not in d})
         write_json_atomic(tmp / "scene.json", d)
@@ -208,8 +253,11 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         b = build_from_data(from_dir, name=scene_name, seed=seed, frames=frames, scale=scale, **from_kwargs)
     else:
         b = build_procedural(scene_name, seed=seed, frames=frames, scale=1.0 if scale is None else scale)
-    cb_sim = (lambda t: progress("simulate", t, b.frames - 1)) if progress else None
-    tx, tF = simulate_built(b, progress=cb_sim)
+    if progress is not None:
+        progress("simulate", 0, 1)
+    tx, tcov = simulate_built(b)
+    if progress is not None:
+        progress("simulate", 1, 1)
     cb_r = (lambda t: progress("render", t + 1, b.frames)) if progress else None
-    r = render_built(b, tx, tF, progress=cb_r)
+    r = render_built(b, tx, tcov, progress=cb_r)
     return write_scene_folder(b, r, Path(out_dir), seed)

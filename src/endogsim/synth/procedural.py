@@ -5,7 +5,6 @@ All functions are deterministic for a seed and return plain tensors (metres, col
 * :func:`endoscope_camera`: a fixed laparoscope (world = camera frame, OpenCV axes, ~70 deg field of view).
 * :func:`mucosa_colors`: red-pink mucosa with vessels and specular highlights, from procedural noise.
 * :func:`tissue_surface`: a textured height-field surface facing the camera -> surface points + colours.
-* :func:`extrude_along_rays`: volumetric particles behind a one-sided surface (DESIGN.md section 4).
 * :func:`surface_gaussians`: flat Gaussians on the surface (the rendered tissue).
 * :func:`tool_gaussians`: a metallic cylindrical instrument shaft with a tip, as Gaussians.
 * :func:`bake_lighting`: endoscope light fall-off with distance and vignetting, baked into colours.
@@ -23,7 +22,7 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, rotmat_to_quat, rgb_to_sh_dc
 
 __all__ = [
-    "endoscope_camera", "fractal_noise", "mucosa_colors", "tissue_surface", "extrude_along_rays",
+    "endoscope_camera", "fractal_noise", "mucosa_colors", "tissue_surface",
     "surface_gaussians", "tool_gaussians", "bake_lighting", "PALETTES",
 ]
 
@@ -120,26 +119,6 @@ def tissue_surface(
         z = z + height_fn(u, v)
     pts = np.stack([center[0] + u, center[1] + v, z], 1)
     return pts, mucosa_colors(uv + np.array(center[:2])[None], seed, palette), uv
-
-
-def extrude_along_rays(points: np.ndarray, thickness: float, spacing: float,
-                       jitter_seed: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Give a one-sided surface volume: copies of ``points`` [N, 3] pushed back along the viewing rays.
-
-    Layers every ``spacing`` metres from the surface to ``thickness`` behind it (camera at the origin).
-    Returns particles [M, 3], the layer index [M] (0 = visible surface, last = back face) and the index
-    of the surface point each particle came from [M].
-    """
-    rays = points / np.linalg.norm(points, axis=1, keepdims=True)
-    layers = max(2, round(thickness / spacing) + 1)
-    depths = np.linspace(0.0, thickness, layers)
-    parts = [points + d * rays for d in depths]
-    x = np.concatenate(parts)
-    if jitter_seed is not None:
-        x += np.random.default_rng(jitter_seed).uniform(-0.1, 0.1, x.shape) * spacing
-    layer = np.repeat(np.arange(layers), len(points))
-    src = np.tile(np.arange(len(points)), layers)
-    return x, layer, src
 
 
 def _normals_from_neighbours(points: np.ndarray) -> np.ndarray:

@@ -19,15 +19,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
+from endogsim.physics import MPMConfig, extrude_along_rays, p_wave_speed, plan_substeps
+from endogsim.physics.particles import camera_center
 from endogsim.synth import procedural as proc
-from endogsim.synth.mpm import Capsule, cfl_number, p_wave_speed
-from endogsim.synth.spec import ObjectTruth, SimSettings, scene_spec
+from endogsim.synth.spec import ObjectTruth, SimSettings, ToolTruth, scene_spec
 
-__all__ = ["BuiltScene", "build_procedural", "tool_offsets", "sim_settings", "tissue_from_surface"]
+__all__ = ["BuiltScene", "build_procedural", "tool_offsets", "tool_truth", "sim_settings", "tissue_from_surface"]
 
 
 @dataclass
@@ -40,9 +42,10 @@ class BuiltScene:
         tissue_gaussians: [G] bool, True for Gaussians advected by the simulation.
         tool_gaussians: {tool object id: [G] bool} Gaussians moving rigidly with each tool.
         particles: [P, 3] MPM particle positions (metres); particle_ids [P]; particle_vol [P] (m^3);
-        anchored: [P] bool. objects: ground-truth records. tools: capsules with per-frame offsets.
+        anchored: [P] bool. objects: ground-truth records. tools: capsule tools with per-frame transforms.
         box_lo [3], box_size (metres): the sim box. gravity [3] m/s^2. damping 1/s.
-        ground_truth / identification: discretisations. boundary_conditions, extrusion: descriptions for
+        ground_truth / identification: discretisations (the ground truth is finer: more substeps and a finer
+        grid, so the benchmark does not reward matching one discretisation). boundary_conditions, extrusion: descriptions for
         scene.json. depth_ref: typical distance (metres) for lighting. source: "procedural" or data folder.
     """
 
@@ -58,7 +61,7 @@ class BuiltScene:
     particle_vol: np.ndarray
     anchored: np.ndarray
     objects: list[ObjectTruth]
-    tools: list[tuple[int, Capsule]]
+    tools: list[ToolTruth]
     box_lo: np.ndarray
     box_size: float
     gravity: np.ndarray
@@ -94,18 +97,39 @@ def tool_offsets(keyframes: list[list[float]], frames: int) -> np.ndarray:
     return out
 
 
-def sim_settings(objects: list[ObjectTruth], box_size: float, grid: int, frame_dt: float,
-                 dt_max: float, cfl_max: float | None = None) -> SimSettings:
-    """Substeps per frame for a grid of ``grid`` cells over ``box_size`` metres: the largest dt <= ``dt_max``
-    that divides ``frame_dt`` and (when ``cfl_max`` is given) keeps c_p dt / dx <= ``cfl_max``."""
-    dx = box_size / grid
+def tool_truth(object_id: int, tip, end, radius: float, offsets: np.ndarray) -> ToolTruth:
+    """A capsule tool (``tip``/``end`` [3] metres at frame 0, ``radius`` metres) translated by ``offsets`` [T, 3]."""
+    tf = np.tile(np.eye(4), (len(offsets), 1, 1))
+    tf[:, :3, 3] = offsets
+    return ToolTruth(object_id=int(object_id), tip=[float(v) for v in tip], end=[float(v) for v in end],
+                     radius=float(radius), transforms=tf.tolist())
+
+
+def tool_speed(tools: list[ToolTruth], frame_dt: float) -> float:
+    """Largest speed (m/s) of any capsule end point between two frames (the CFL rule needs it)."""
+    speed = 0.0
+    for tool in tools:
+        tf = tool.matrices()
+        ends = np.array([tool.tip, tool.end], float)
+        pos = np.einsum("tij,pj->tpi", tf[:, :3, :3], ends) + tf[:, None, :3, 3]
+        if len(pos) > 1:
+            speed = max(speed, float(np.linalg.norm(np.diff(pos, axis=0), axis=-1).max()) / frame_dt)
+    return speed
+
+
+def sim_settings(objects: list[ObjectTruth], box_size: float, grid: int, frame_dt: float, substeps: int,
+                 max_speed: float = 0.0, cfl_number: float = 0.5) -> SimSettings:
+    """The discretisation the Warp simulator takes for ``grid`` cells over ``box_size`` metres with at least
+    ``substeps`` per frame: :func:`endogsim.physics.plan_substeps` (CFL number ``cfl_number``, tool speed
+    ``max_speed`` m/s) over the deformable objects, and the CFL number c_p dt / dx it reaches."""
     soft = [o for o in objects if not o.rigid]
-    cmax = max((p_wave_speed(o.E, o.nu, o.density) for o in soft), default=1.0)
-    dt = dt_max if cfl_max is None else min(dt_max, cfl_max * dx / cmax)
-    substeps = max(1, math.ceil(frame_dt / dt - 1e-9))
-    dt = frame_dt / substeps
-    cfl = max((cfl_number(o.E, o.nu, o.density, dt, dx) for o in soft), default=0.0)
-    return SimSettings(grid=grid, dt=dt, substeps=substeps, cfl=cfl)
+    if not soft:
+        raise DataError("a benchmark scene needs at least one deformable object")
+    E, nu, rho = (np.array([getattr(o, k) for o in soft], float) for k in ("E", "nu", "density"))
+    cfg = MPMConfig(grid_res=int(grid), frame_dt=frame_dt, substeps_per_frame=int(substeps), cfl_number=cfl_number)
+    n, dt = plan_substeps(cfg, box_size, E, nu, rho, max_speed)
+    cfl = float(np.max(p_wave_speed(E, nu, rho))) * dt / (box_size / grid)
+    return SimSettings(grid=int(grid), dt=float(dt), substeps=int(n), cfl=cfl)
 
 
 def _outline(obj: dict[str, Any]):
@@ -140,14 +164,18 @@ def _outline(obj: dict[str, Any]):
 
 
 def tissue_from_surface(points: np.ndarray, edge_dist: np.ndarray, thickness: float, spacing: float,
-                        anchors: dict[str, Any], object_id: int) -> dict[str, np.ndarray]:
-    """Particles of one tissue object from its visible surface samples ``points`` [S, 3] (metres).
+                        anchors: dict[str, Any], object_id: int, camera: Camera) -> dict[str, np.ndarray]:
+    """Particles of one tissue object from its visible surface samples ``points`` [S, 3] (metres), extruded
+    away from ``camera`` along the viewing rays (:func:`endogsim.physics.extrude_along_rays`).
 
     ``edge_dist`` [S]: distance of each sample to the organ outline (metres) for the border anchor.
     Returns x [P, 3], ids [P], vol [P] (m^3), anchored [P] bool.
     """
-    x, layer, src = proc.extrude_along_rays(points, thickness, spacing)
-    n_layers = layer.max() + 1
+    pts = torch.as_tensor(points, dtype=torch.float64)
+    xt, src_t = extrude_along_rays(pts, camera_center(camera), thickness, spacing)
+    x, src = xt.numpy(), src_t.numpy()
+    layer = np.arange(len(x)) // len(points)
+    n_layers = int(layer.max()) + 1
     anchored = np.zeros(len(x), bool)
     if anchors.get("back_face", True):
         back = layer == n_layers - 1
@@ -159,9 +187,31 @@ def tissue_from_surface(points: np.ndarray, edge_dist: np.ndarray, thickness: fl
     band = float(anchors.get("border", 0.0))
     if band > 0:
         anchored |= edge_dist[src] < band
-    layer_dz = thickness / (n_layers - 1)
+    layer_dz = thickness / (n_layers - 1) if n_layers > 1 else spacing
     vol = np.full(len(x), spacing * spacing * layer_dz)
     return {"x": x, "ids": np.full(len(x), object_id, np.int64), "vol": vol, "anchored": anchored}
+
+
+def ground_truth_and_identification(spec: dict[str, Any], objects: list[ObjectTruth], box_size: float,
+                                     tools: list[ToolTruth], name: str) -> tuple[SimSettings, SimSettings]:
+    """The two discretisations of a scene from the suite's numerics keys.
+
+    Identification: ``ident_grid`` cells, ``frame_dt / ident_dt`` substeps (the paper's 50^3 and 25 x 2e-4 s).
+    Ground truth: the finer ``gt_grid`` and ``gt_refine`` times the substeps, raised further where the CFL
+    number would pass ``gt_cfl``.
+    """
+    frame_dt = float(spec["frame_dt"])
+    speed = tool_speed(tools, frame_dt)
+    ident_sub = max(1, round(frame_dt / spec["ident_dt"]))
+    ident = sim_settings(objects, box_size, spec["ident_grid"], frame_dt, ident_sub, speed)
+    gt = sim_settings(objects, box_size, spec["gt_grid"], frame_dt, ident_sub * int(spec["gt_refine"]), speed,
+                      cfl_number=float(spec["gt_cfl"]))
+    if gt.grid < ident.grid or gt.substeps < ident.substeps:
+        raise DataError(f"scene {name}: the ground truth must be at least as fine as identification "
+                        f"(grid {gt.grid} vs {ident.grid}, substeps {gt.substeps} vs {ident.substeps})")
+    if gt.cfl > 0.5:
+        raise SimulationError(f"scene {name}: ground-truth CFL {gt.cfl:.2f} > 0.5")
+    return gt, ident
 
 
 def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale: float = 1.0) -> BuiltScene:
@@ -193,7 +243,7 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
         ppts, _, puv = proc.tissue_surface(center, tuple(o["size"]), p_sp, tex_seed, height_fn=height,
                                            palette=o.get("palette", "mucosa"), mask_fn=mask)
         parts_p.append(tissue_from_surface(ppts, edge(puv[:, 0], puv[:, 1]), o["thickness"], p_sp,
-                                           o.get("anchors", {}), o["id"]))
+                                           o.get("anchors", {}), o["id"], cam))
         bcs.append({"type": "anchors", "object": o["name"], **o.get("anchors", {})})
 
     t = spec["tool"]
@@ -201,7 +251,7 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
                                E=float(t["E"]), nu=float(t["nu"]), density=float(t["density"])))
     tip, end = np.array(t["tip"], float), np.array(t["end"], float)
     tool_g = proc.tool_gaussians(tip, end, t["radius"], 0.8 * g_sp, t["id"], seed=seed, jaw=t.get("jaw", False))
-    capsule = Capsule(a=tip, b=end, radius=t["radius"], offsets=tool_offsets(t["keyframes"], T))
+    tool = tool_truth(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T))
 
     tissue = Gaussians.concat(parts_g)
     allg = Gaussians.concat([tissue, tool_g])
@@ -211,16 +261,12 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
     tissue_mask[:n_t] = True
     box = spec["sim_box"]
     box_lo = np.asarray(box["center"], float) - box["size"] / 2
-    gt = sim_settings(objects, box["size"], spec["sim_grid"], spec["frame_dt"], spec["ident_dt"] / spec["gt_refine"],
-                      spec["gt_cfl"])
-    ident = sim_settings(objects, box["size"], spec["ident_grid"], spec["frame_dt"], spec["ident_dt"])
-    if gt.cfl > 0.5:
-        raise SimulationError(f"scene {name}: ground-truth CFL {gt.cfl:.2f} > 0.5")
+    gt, ident = ground_truth_and_identification(spec, objects, box["size"], [tool], name)
     cat = {k: np.concatenate([p[k] for p in parts_p]) for k in parts_p[0]}
     return BuiltScene(
         name=name, camera=cam, frames=T, frame_dt=spec["frame_dt"], gaussians=allg, tissue_gaussians=tissue_mask,
         tool_gaussians={t["id"]: ~tissue_mask}, particles=cat["x"], particle_ids=cat["ids"], particle_vol=cat["vol"],
-        anchored=cat["anchored"], objects=objects, tools=[(t["id"], capsule)], box_lo=box_lo, box_size=box["size"],
+        anchored=cat["anchored"], objects=objects, tools=[tool], box_lo=box_lo, box_size=box["size"],
         gravity=np.asarray(spec["gravity"], float), damping=spec["damping"], ground_truth=gt, identification=ident,
         boundary_conditions=bcs, extrusion={"along": "viewing_rays", "thickness": {o["name"]: o["thickness"] for o in spec["objects"]}},
         particle_spacing=p_sp, extra={"description": spec["description"], "depth_ref": D},

@@ -12,6 +12,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from endogsim.errors import DataError
 
 __all__ = [
@@ -47,6 +49,10 @@ class ToolTruth:
     radius: float
     transforms: list[list[list[float]]]
     contact: str = "sticky"
+
+    def matrices(self) -> np.ndarray:
+        """[T, 4, 4] float64 world transforms per frame."""
+        return np.asarray(self.transforms, dtype=np.float64)
 
 
 @dataclass

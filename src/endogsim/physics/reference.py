@@ -1,18 +1,13 @@
-"""A small pure-PyTorch MLS-MPM used to simulate the *ground-truth* videos of the benchmark.
+"""A pure-PyTorch MLS-MPM reference solver for the Warp simulator (gsplat style: a slow, readable
+reference beside the fast path).
 
-Why it lives here: the benchmark must not reward matching one discretisation (DESIGN.md section 8), and
-the ground truth may use a finer simulation than identification. This reference solver uses the same
-physics as the Warp simulator in :mod:`endogsim.physics` (quadratic B-splines, APIC/MLS transfer, fixed
-corotated elasticity, sticky kinematic tool colliders, anchored particles, gravity), written in plain
-vectorised PyTorch (forward only, no tape) so it is easy to read and has no compile step.
+Same physics as :mod:`endogsim.physics` (quadratic B-splines, APIC/MLS transfer, fixed corotated
+elasticity, sticky kinematic capsule colliders, anchored particles, gravity, closed box walls), written in
+plain vectorised float64 PyTorch, forward only, no compile step. It exists to check the Warp kernels
+(tests/test_physics.py); nothing in the pipeline runs it.
 
-Units: everything in world metres, seconds, kg, Pa. Simulating in world units is the same as simulating
-in a unit sim box with E_sim = s^2 E (DESIGN.md section 3); the box here only positions the grid.
-
-The solver returns particle positions and deformation gradients per rendered frame; Gaussians are moved
-from them by :func:`skin_gaussians` (k nearest particles of the same object, DESIGN.md section 4), so
-Sigma_t = F Sigma_0 F^T. Optional massless tracers (advected through the grid every substep) are kept
-for checks; they cost a G2P per substep.
+Units: world metres, seconds, kg, Pa (simulating in world units is the same as simulating in a unit sim
+box with E_sim = s^2 E, DESIGN.md section 3; the box here only positions the grid).
 """
 
 from __future__ import annotations
@@ -24,23 +19,9 @@ import numpy as np
 import torch
 
 from endogsim.errors import SimulationError
+from endogsim.physics.particles import polar_rotation
 
-__all__ = ["p_wave_speed", "cfl_number", "stable_dt", "Capsule", "MPMProblem", "MPMResult", "run_mpm", "skin_gaussians"]
-
-
-def p_wave_speed(E: float, nu: float, density: float) -> float:
-    """Dilatational wave speed c_p (m/s) of a linear elastic solid: sqrt(E (1-nu) / ((1+nu)(1-2nu) rho))."""
-    return math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu) * density))
-
-
-def cfl_number(E: float, nu: float, density: float, dt: float, dx: float) -> float:
-    """c_p dt / dx: explicit MPM is stable for values up to about 0.3-1 (DESIGN.md section 4)."""
-    return p_wave_speed(E, nu, density) * dt / dx
-
-
-def stable_dt(E: float, nu: float, density: float, dx: float, cfl: float = 0.4) -> float:
-    """Largest substep dt (s) with CFL number ``cfl``."""
-    return cfl * dx / p_wave_speed(E, nu, density)
+__all__ = ["Capsule", "MPMProblem", "MPMResult", "run_mpm"]
 
 
 @dataclass
@@ -68,7 +49,7 @@ class MPMProblem:
         anchored: [P] bool, particles held at their rest position (boundary conditions).
         box_lo: [3] world corner of the grid (metres); box_size: edge of the cubic grid (metres).
         grid: cells per edge. dt: substep (s). substeps: substeps per rendered frame.
-        gravity: [3] m/s^2 (world). tools: kinematic colliders. tracers: [G, 3] Gaussian centres to advect.
+        gravity: [3] m/s^2 (world). tools: kinematic colliders.
         damping: grid velocity decay rate (1/s), a simple model of tissue viscosity.
     """
 
@@ -86,18 +67,15 @@ class MPMProblem:
     frames: int
     gravity: np.ndarray
     tools: list[Capsule] = field(default_factory=list)
-    tracers: np.ndarray | None = None
     damping: float = 0.0
 
 
 @dataclass
 class MPMResult:
-    """x: [T, P, 3] particle positions (m); F: [T, P, 3, 3]; tracer_x: [T, G, 3]; tracer_F: [T, G, 3, 3]."""
+    """x: [T, P, 3] particle positions (m); F: [T, P, 3, 3] deformation gradients."""
 
     x: np.ndarray
     F: np.ndarray
-    tracer_x: np.ndarray
-    tracer_F: np.ndarray
 
 
 _OFFSETS = torch.stack(torch.meshgrid(*(torch.arange(3),) * 3, indexing="ij"), -1).reshape(27, 3)
@@ -119,18 +97,8 @@ def _flat_index(base: torch.Tensor, n: int) -> torch.Tensor:
     return (idx[..., 0] * n + idx[..., 1]) * n + idx[..., 2]
 
 
-def _polar_R(F: torch.Tensor) -> torch.Tensor:
-    U, _, Vh = torch.linalg.svd(F)
-    R = U @ Vh
-    # Keep a proper rotation (det +1) so inverted elements are pushed back.
-    det = torch.linalg.det(R)
-    U = U.clone()
-    U[det < 0, :, 2] *= -1
-    return U @ Vh
-
-
-def _g2p(xg, gv, n, inv_dx, stencil=None):
-    base, w, dpos = _weights(xg) if stencil is None else stencil
+def _g2p(gv, n, inv_dx, stencil):
+    base, w, dpos = stencil
     idx = _flat_index(base, n)
     v_nb = gv[idx]  # [N, 27, 3]
     v = (w[..., None] * v_nb).sum(1)
@@ -159,8 +127,6 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
     mu, lam = torch.tensor(p.mu, dtype=dtype), torch.tensor(p.lam, dtype=dtype)
     anchored = torch.tensor(p.anchored, dtype=torch.bool)
     g = torch.tensor(p.gravity, dtype=dtype)
-    tr = torch.tensor(p.tracers if p.tracers is not None else np.zeros((0, 3)), dtype=dtype) - lo
-    trF = torch.eye(3, dtype=dtype).repeat(tr.shape[0], 1, 1)
 
     # Grid node coordinates (metres, box frame) for the collider test.
     ii = torch.arange(n + 1, dtype=dtype) * dx
@@ -178,8 +144,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
 
     if ((x < pad) | (x > L - pad)).any():
         raise SimulationError("particles lie outside the sim box (or within 2 cells of its walls): enlarge the box")
-    xs, Fs, txs, tFs = [x.clone()], [F.clone()], [tr.clone()], [trF.clone()]
-    tr = tr.clamp(pad, L - pad)  # tracers outside the box would index outside the grid
+    xs, Fs = [x.clone()], [F.clone()]
     decay = math.exp(-p.damping * dt)
     for frame in range(1, p.frames):
         for sub in range(p.substeps):
@@ -187,7 +152,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             base, w, dpos = _weights(xg)
             idx = _flat_index(base, n1)
             J = torch.linalg.det(F)
-            R = _polar_R(F)
+            R = polar_rotation(F)
             stress = 2 * mu[:, None, None] * (F - R) @ F.mT + (lam * (J - 1) * J)[:, None, None] * torch.eye(3, dtype=dtype)
             stress = -dt * 4 * inv_dx * inv_dx * vol[:, None, None] * stress
             affine = stress + mass[:, None, None] * C
@@ -209,7 +174,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
                 inside = d < r
                 gv[inside] = vel
             gv[wall] = 0
-            v, C = _g2p(xg, gv, n1, inv_dx, stencil=(base, w, dpos))
+            v, C = _g2p(gv, n1, inv_dx, (base, w, dpos))
             x = x + dt * v
             F = (torch.eye(3, dtype=dtype) + dt * C) @ F
             # Anchors: held at rest (Dirichlet boundary condition on particles).
@@ -217,63 +182,16 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             C[anchored] = 0
             x[anchored] = x0[anchored]
             F[anchored] = torch.eye(3, dtype=dtype)
-            if tr.shape[0]:
-                tv, tC = _g2p(tr * inv_dx, gv, n1, inv_dx)
-                tr = tr + dt * tv
-                trF = (torch.eye(3, dtype=dtype) + dt * tC) @ trF
-                tr = tr.clamp(pad, L - pad)
             if not torch.isfinite(x).all():
                 raise SimulationError(f"MPM diverged (NaN/inf) at frame {frame}: lower dt or E")
             if ((x < pad) | (x > L - pad)).any():
                 raise SimulationError(f"particles reached the grid border at frame {frame}: enlarge the sim box")
         xs.append(x.clone())
         Fs.append(F.clone())
-        txs.append(tr.clone())
-        tFs.append(trF.clone())
         if progress is not None:
             progress(frame)
     lo_np = p.box_lo.astype(np.float64)
     return MPMResult(
         x=torch.stack(xs).numpy() + lo_np,
         F=torch.stack(Fs).numpy(),
-        tracer_x=torch.stack(txs).numpy() + lo_np,
-        tracer_F=torch.stack(tFs).numpy(),
     )
-
-
-def skin_gaussians(g_x0: np.ndarray, g_ids: np.ndarray, p_x0: np.ndarray, p_ids: np.ndarray,
-                   p_x: np.ndarray, p_F: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Move Gaussians with their k nearest particles of the same object (inverse-square-distance weights).
-
-    x_g(t) = x_g0 + sum_k w_k (x_k(t) - x_k0),  F_g(t) = sum_k w_k F_k(t).
-
-    Interpolating displacements (rather than each particle's affine map x_k + F_k (x - x_k0)) keeps
-    neighbouring Gaussians together where F is noisy, e.g. at a sticky tool contact.
-
-    Args:
-        g_x0: [G, 3] Gaussian centres at rest (m); g_ids: [G] object ids.
-        p_x0: [P, 3] particle rest positions (m); p_ids: [P] object ids.
-        p_x: [T, P, 3] particle positions per frame (m); p_F: [T, P, 3, 3] deformation gradients.
-    Returns:
-        x [T, G, 3] (m) and F [T, G, 3, 3].
-    """
-    from scipy.spatial import cKDTree
-
-    T, G = p_x.shape[0], g_x0.shape[0]
-    out_x = np.repeat(g_x0[None].astype(np.float64), T, 0)
-    out_F = np.tile(np.eye(3), (T, G, 1, 1))
-    for oid in np.unique(g_ids):
-        gsel = np.nonzero(g_ids == oid)[0]
-        psel = np.nonzero(p_ids == oid)[0]
-        if len(psel) == 0:
-            continue  # an object without particles (static) stays at rest
-        kk = min(k, len(psel))
-        dist, nb = cKDTree(p_x0[psel]).query(g_x0[gsel], k=kk)
-        dist, nb = dist.reshape(len(gsel), kk), psel[nb.reshape(len(gsel), kk)]
-        w = 1.0 / (dist + 1e-4) ** 2
-        w /= w.sum(1, keepdims=True)
-        for t in range(T):
-            disp = p_x[t][nb] - p_x0[nb]  # [Gs, k, 3]
-            out_x[t, gsel] = g_x0[gsel] + (w[..., None] * disp).sum(1)
-            out_F[t, gsel] = (w[..., None, None] * p_F[t][nb]).sum(1)
-    return out_x, out_F
