@@ -17,7 +17,7 @@ from endogsim.identify.problem import capsule_collider_points
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField, MaterialRecord
 
-FRAMES = 5  # short clip: the probe starts indenting in the first frames
+FRAMES = 10  # the whole ``tiny`` clip: its first frames alone barely depend on E (the probe drives them)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def field_from_truth(problem, E_factor=1.0, nu=None, E_override=None) -> Materia
 
 
 def fast_config(**kw) -> IdentifyConfig:
-    return IdentifyConfig(**{"iters": 3, "lr": 0.1, "render_scale": 0.5, "grad_mode": "frame", "patience": 100, **kw})
+    return IdentifyConfig(**{"iters": 3, "lr": 0.1, "patience": 100, "frame_stride": 2, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +98,22 @@ def test_loss_decreases_and_E_moves_towards_the_truth(run3):
     assert res.best_iteration == int(np.argmin(losses))
 
 
+def test_gradient_matches_finite_differences(run3, problem):
+    """The default gradient ("full") is the derivative of the very loss the loop minimises."""
+    from endogsim.identify.optimize import evaluate_loss, prepare_observations
+
+    res, _ = run3
+    cfg = fast_config()
+    obs, cam = prepare_observations(problem, cfg, None)
+    h = 0.02  # decades
+    L = [evaluate_loss(problem, field_from_truth(problem, 2.0 * 10 ** s), None, obs, cam, cfg, grad=False)[1]["total"]
+         for s in (h, -h)]
+    fd = (L[0] - L[1]) / (2 * h)
+    g = res.history[0]["grad_log10_E"][0]
+    # float32 renders at half scale make the loss slightly rough at this step: 30% (3% at render_scale 1)
+    assert fd > 0 and g == pytest.approx(fd, rel=0.3), (g, fd)
+
+
 def test_rigid_objects_stay_frozen(run3, problem):
     res, _ = run3
     tool = next(o for o in problem.truth.objects if o.rigid)
@@ -116,8 +132,9 @@ def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
     res_b = identify(problem, init, fast_config(), run_dir=tmp_path)
     assert res_b.iterations == 3
     np.testing.assert_allclose([h["loss"] for h in res_b.history], [h["loss"] for h in res_a.history], rtol=1e-6)
-    assert res_b.field[1].E == pytest.approx(res_a.field[1].E, rel=1e-9)
-    assert res_b.field[1].nu == pytest.approx(res_a.field[1].nu, rel=1e-9)
+    # The same to float32 rounding of the gradients (the simulator and renderer compute in float32).
+    assert res_b.field[1].E == pytest.approx(res_a.field[1].E, rel=1e-6)
+    assert res_b.field[1].nu == pytest.approx(res_a.field[1].nu, rel=1e-6)
     # Other settings than the checkpoint's are refused, not silently mixed.
     with pytest.raises(DataError, match="other settings"):
         identify(problem, init, fast_config(loss="render"), run_dir=tmp_path)
@@ -201,11 +218,9 @@ def test_cli_identify_iters_zero(tiny, tmp_path):
 
 
 @pytest.mark.slow
-def test_recovers_E_within_10_percent_from_3x_off(tmp_path):
-    from endogsim.synth import synthesize
-
-    folder = synthesize("tiny", tmp_path / "tiny10", seed=0)
-    pb = load_problem(folder)
-    cfg = IdentifyConfig(iters=25, render_scale=0.5, grad_mode="frame", optimize_nu=False, patience=8)
-    res = identify(pb, field_from_truth(pb, 3.0), cfg, run_dir=tmp_path / "run")
-    assert abs(res.field[1].E / 2500.0 - 1) < 0.10, res.field[1].E
+def test_recovers_E_within_10_percent_from_3x_off(problem, tmp_path):
+    """From E 3x too stiff (nu known), identification lands within 10% of the true E."""
+    cfg = IdentifyConfig(iters=20, optimize_nu=False, patience=6, time_budget=None)
+    res = identify(problem, field_from_truth(problem, 3.0), cfg, run_dir=tmp_path / "run")
+    E_true = next(o.E for o in problem.truth.objects if not o.rigid)
+    assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)

@@ -6,12 +6,14 @@ Tables (RE = mean relative error of E, nu, G, K; EPE in pixels against the groun
   3. loss: render only, flow only, joint
   4. gradient mode: last_substep, frame, full: RE reached and seconds
 
-Scenes are synthesized once into ``--scenes-dir`` (reused afterwards). ``--quick`` runs everything on
-``tiny`` (and a shortened ``two_tissues``) with few iterations so the whole bench takes minutes on a CPU.
+Scenes are synthesized once into ``--scenes-dir`` (reused afterwards). ``--quick`` runs tables 1, 3, 4 on
+``tiny`` and table 2 on ``two_tissues`` at half image size and 12 frames, with 6 iterations, so the whole
+bench takes minutes on a CPU; ``--scenes``, ``--iters``, ``--frames`` and ``--tables`` choose other settings.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
@@ -24,13 +26,18 @@ from endogsim.cli.common import user_errors
 ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
 
 
-def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None) -> Path:
-    """The folder of benchmark scene ``name`` under ``scenes_dir``, synthesized if missing."""
+def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: float | None = None) -> Path:
+    """The folder of benchmark scene ``name`` under ``scenes_dir``, synthesized if missing.
+
+    Args:
+        frames: number of frames (default: the suite's); scale: image-size factor (default 1).
+    """
     from endogsim.synth import synthesize
 
-    folder = scenes_dir / (name if frames is None else f"{name}_f{frames}")
+    tag = name + ("" if frames is None else f"_f{frames}") + ("" if scale in (None, 1.0) else f"_s{scale:g}")
+    folder = scenes_dir / tag
     if not (folder / "scene.json").is_file():
-        synthesize(name, folder, seed=0, frames=frames)
+        synthesize(name, folder, seed=0, frames=frames, scale=scale)
     return folder
 
 
@@ -44,32 +51,42 @@ def _run(scene: Path, out: Path, init: str, cfg, fresh: bool = True) -> dict:
 
 
 def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int | None = None,
-              scenes: list[str] | None = None, tables: list[str] | None = None, log=print) -> dict:
+              scenes: list[str] | None = None, tables: list[str] | None = None, frames: int | None = None,
+              log=print) -> dict:
     """Run the ablations; returns {"tables": {name: {"columns": [...], "rows": [[...]]}}, "runs": {...}}.
 
     Args:
         scenes_dir: where benchmark scenes are (or get) synthesized.
         work_dir: run folders of every identification.
-        quick: tiny scenes, few frames and iterations.
-        iters: iterations per optimised run (default 6 quick, 30 otherwise).
-        scenes: scenes of tables 1, 3, 4 (default: tiny quick, else the five procedural scenes for table 1
-            and ``press`` for tables 3 and 4).
+        quick: ``tiny`` for tables 1, 3, 4; ``two_tissues`` at half size and 12 frames for table 2; 6 iterations.
+        iters: iterations per optimised run (default 6 quick, else :class:`IdentifyConfig`'s).
+        scenes: scenes of table 1 (default: ``tiny`` quick, else the five procedural scenes); the first is
+            also the scene of tables 3 and 4 (default ``tiny`` quick, else ``press``).
         tables: subset of {"init", "field", "loss", "grad"}.
+        frames: identify from the first ``frames`` frames only (default: all).
     """
-    from endogsim.identify import IdentifyConfig
+    from endogsim.identify import GRAD_MODES, LOSSES, IdentifyConfig
 
     tables = tables or ["init", "field", "loss", "grad"]
-    n_it = iters if iters is not None else (6 if quick else 30)
-    frames = 6 if quick else None
+    n_it = iters if iters is not None else (6 if quick else IdentifyConfig().iters)
     main_scenes = scenes or (["tiny"] if quick else list(ALL_SCENES))
-    abl_scene = (scenes or ["tiny"])[0] if quick else (scenes[0] if scenes else "press")
-    base = dict(iters=n_it, frames=frames, render_scale=0.5)
-    out: dict = {"tables": {}, "runs": {}, "settings": {"quick": quick, "iters": n_it, "frames": frames}}
+    abl_scene = scenes[0] if scenes else ("tiny" if quick else "press")
+    field_frames, field_scale = (12, 0.5) if quick else (None, None)  # two_tissues for table 2
+    base = dict(iters=n_it, frames=frames)
+    out: dict = {"tables": {}, "runs": {}, "settings": {"quick": quick, "iters": n_it, "frames": frames,
+                                                          "config": IdentifyConfig(**base).to_json()}}
 
     def scene_dir(name: str) -> Path:
         return ensure_scene(name, scenes_dir, None)
 
-    def record(key: str, m: dict) -> dict:
+    done: dict[str, dict] = {}  # identical runs (e.g. prior/on = joint loss = default grad mode) run once
+
+    def run(key: str, folder: Path, init: str, **options) -> dict:
+        cfg = IdentifyConfig(**{**base, **options})
+        same = json.dumps([str(folder), init, cfg.to_json()], sort_keys=True)
+        if same not in done:
+            done[same] = _run(folder, work_dir / key, init, cfg)
+        m = done[same]
         out["runs"][key] = {k: m.get(k) for k in ("scene", "init", "loss", "grad_mode", "global_material", "re_mean",
                                                    "re_E", "re_nu", "epe", "psnr", "ssim", "seconds", "iterations",
                                                    "materials")}
@@ -83,9 +100,7 @@ def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int 
             row = [sc]
             for init in ("manual", "prior"):
                 for on in (False, True):
-                    cfg = IdentifyConfig(**{**base, "iters": n_it if on else 0})
-                    key = f"init/{sc}/{init}/{'on' if on else 'off'}"
-                    m = record(key, _run(folder, work_dir / key, init, cfg))
+                    m = run(f"init/{sc}/{init}/{'on' if on else 'off'}", folder, init, iters=n_it if on else 0)
                     row += [m.get("re_mean", math.nan), m["epe"]]
             rows.append(row)
         if len(rows) > 1:
@@ -94,34 +109,24 @@ def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int 
                                  "columns": ["scene", "manual off RE", "EPE", "manual on RE", "EPE",
                                              "prior off RE", "EPE", "prior on RE", "EPE"], "rows": rows}
     if "field" in tables:
-        folder = scene_dir("two_tissues")
+        folder = ensure_scene("two_tissues", scenes_dir, field_frames, field_scale)
         rows = []
         for glob in (False, True):
-            key = f"field/two_tissues/{'global' if glob else 'field'}"
-            cfg = IdentifyConfig(**{**base, "global_material": glob})
-            m = record(key, _run(folder, work_dir / key, "prior", cfg))
+            m = run(f"field/two_tissues/{'global' if glob else 'field'}", folder, "prior", global_material=glob)
             mats = "; ".join(f"{n} {v['E']:.4g} Pa / {v['nu']:.3f}" for n, v in m["materials"].items() if not v["rigid"])
             rows.append(["global material" if glob else "material field", m.get("re_mean", math.nan), m["epe"], mats])
         out["tables"]["field"] = {"title": "Material field vs global material on two_tissues",
                                   "columns": ["variant", "RE", "EPE px", "identified"], "rows": rows}
-    if "loss" in tables:
+    for table, option, values in (("loss", "loss", LOSSES), ("grad", "grad_mode", GRAD_MODES)):
+        if table not in tables:
+            continue
         folder = scene_dir(abl_scene)
         rows = []
-        for loss in ("render", "flow", "joint"):
-            key = f"loss/{abl_scene}/{loss}"
-            m = record(key, _run(folder, work_dir / key, "prior", IdentifyConfig(**{**base, "loss": loss})))
-            rows.append([loss, m.get("re_mean", math.nan), m["epe"], m["seconds"]])
-        out["tables"]["loss"] = {"title": f"Loss ablation on {abl_scene}", "columns": ["loss", "RE", "EPE px", "seconds"],
-                                 "rows": rows}
-    if "grad" in tables:
-        folder = scene_dir(abl_scene)
-        rows = []
-        for mode in ("last_substep", "frame", "full"):
-            key = f"grad/{abl_scene}/{mode}"
-            m = record(key, _run(folder, work_dir / key, "prior", IdentifyConfig(**{**base, "grad_mode": mode})))
-            rows.append([mode, m.get("re_mean", math.nan), m["epe"], m["seconds"], m["iterations"]])
-        out["tables"]["grad"] = {"title": f"Gradient mode on {abl_scene}",
-                                 "columns": ["grad mode", "RE", "EPE px", "seconds", "iterations"], "rows": rows}
+        for v in values:
+            m = run(f"{table}/{abl_scene}/{v}", folder, "prior", **{option: v})
+            rows.append([v, m.get("re_mean", math.nan), m["epe"], m["seconds"], m["iterations"]])
+        out["tables"][table] = {"title": f"{option} ablation on {abl_scene} (prior init)",
+                                "columns": [option, "RE", "EPE px", "seconds", "iterations"], "rows": rows}
     return out
 
 
@@ -132,8 +137,9 @@ def register(bench_app: typer.Typer) -> None:
     @user_errors
     def bench_identify(
         json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the tables and runs as JSON."),
-        quick: bool = typer.Option(False, "--quick", help="tiny scene, 6 frames, 6 iterations (minutes on CPU)."),
+        quick: bool = typer.Option(False, "--quick", help="tiny (and a small two_tissues), 6 iterations (minutes on CPU)."),
         iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per optimised run."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Identify from the first N frames only."),
         scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated scenes for the tables."),
         tables: Optional[str] = typer.Option(None, "--tables", help="Comma-separated subset of init,field,loss,grad."),
         scenes_dir: Path = typer.Option(Path.home() / ".cache" / "endogsim" / "bench_scenes", "--scenes-dir",
@@ -143,7 +149,7 @@ def register(bench_app: typer.Typer) -> None:
         """Identification ablations: init x optimisation, material field vs global, loss, gradient mode."""
         from endogsim.cli.common import console, print_table, write_json_atomic
 
-        res = run_bench(scenes_dir, work_dir, quick=quick, iters=iters,
+        res = run_bench(scenes_dir, work_dir, quick=quick, iters=iters, frames=frames,
                         scenes=scenes.split(",") if scenes else None, tables=tables.split(",") if tables else None,
                         log=console.print)
         for t in res["tables"].values():

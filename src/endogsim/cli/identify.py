@@ -8,6 +8,9 @@ from typing import Optional
 import typer
 
 from endogsim.cli.common import user_errors
+from endogsim.identify.config import IdentifyConfig
+
+_DEFAULT = IdentifyConfig()  # the CLI shows and uses the library's defaults
 
 
 def register(app: typer.Typer) -> None:
@@ -19,14 +22,19 @@ def register(app: typer.Typer) -> None:
         scene: Path = typer.Argument(..., help="Scene folder with scene.json (e.g. from `endogsim synth`)."),
         out: Path = typer.Option(..., "--out", "-o", help="Run folder (outputs and checkpoint; resumes if present)."),
         init: str = typer.Option("prior", "--init", help="manual | prior | mllm | replay | a materials JSON file."),
-        loss: str = typer.Option("joint", "--loss", help="joint (render + 0.1 flow) | render | flow."),
-        grad_mode: str = typer.Option("frame", "--grad-mode", help="last_substep | frame | full."),
-        iters: int = typer.Option(30, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
+        loss: str = typer.Option(_DEFAULT.loss, "--loss", help="joint (render + 0.1 flow) | render | flow."),
+        grad_mode: str = typer.Option(_DEFAULT.grad_mode, "--grad-mode", help="last_substep | frame | full."),
+        iters: int = typer.Option(_DEFAULT.iters, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
         global_material: bool = typer.Option(False, "--global-material",
                                               help="One (E, nu) for every deformable object (ablation)."),
-        lr: float = typer.Option(0.1, "--lr", help="Adam step (decades of E; raw nu units)."),
-        render_scale: float = typer.Option(0.5, "--render-scale", help="Render/compare at this fraction of the image size."),
+        lr: float = typer.Option(_DEFAULT.lr, "--lr", help="Adam step (decades of E; raw nu units)."),
+        render_scale: float = typer.Option(_DEFAULT.render_scale, "--render-scale",
+                                           help="Render/compare at this fraction of the image size."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+        time_budget: Optional[float] = typer.Option(_DEFAULT.time_budget, "--time-budget",
+                                                    help="Stop after this many seconds of optimisation (best kept)."),
+        frame_stride: int = typer.Option(_DEFAULT.frame_stride, "--frame-stride",
+                                         help="Compare every k-th frame (and its flow); the simulation runs through all."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
@@ -36,11 +44,11 @@ def register(app: typer.Typer) -> None:
         """Refine E and nu of the deformable objects so the simulated, rendered scene matches the video
         (appearance and optical flow). Writes identified materials, metrics.json, plots, a video, a summary."""
         from endogsim.cli.common import console, print_table, progress
-        from endogsim.identify import IdentifyConfig, run_identify
+        from endogsim.identify import run_identify
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
-                             render_scale=render_scale, frames=frames, flow_estimator=flow, flow_weights=flow_weights,
-                             device=device)
+                             render_scale=render_scale, frames=frames, frame_stride=frame_stride,
+                             flow_estimator=flow, flow_weights=flow_weights, device=device, time_budget=time_budget)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
 

@@ -17,10 +17,21 @@ simulator and renderer inputs), :mod:`~endogsim.identify.forward` (simulate + re
 checkpoints), :mod:`~endogsim.identify.report` (metrics, plots, video), :mod:`~endogsim.identify.run`.
 """
 
-from endogsim.identify.config import GRAD_MODES, LOSSES, IdentifyConfig
-from endogsim.identify.optimize import IdentifyResult, check_stable, identify
-from endogsim.identify.problem import IdentifyProblem, load_problem
-from endogsim.identify.run import INIT_CHOICES, initial_field, run_identify
+from importlib import import_module
 
-__all__ = ["GRAD_MODES", "INIT_CHOICES", "LOSSES", "IdentifyConfig", "IdentifyProblem", "IdentifyResult",
-           "check_stable", "identify", "initial_field", "load_problem", "run_identify"]
+# Names load lazily (PEP 562): the CLI imports the light ``config`` module at start-up without pulling in
+# the simulator and renderer.
+_EXPORTS = {
+    "GRAD_MODES": "config", "LOSSES": "config", "IdentifyConfig": "config",
+    "IdentifyResult": "optimize", "check_stable": "optimize", "identify": "optimize",
+    "IdentifyProblem": "problem", "load_problem": "problem",
+    "INIT_CHOICES": "run", "initial_field": "run", "run_identify": "run",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(f"endogsim.identify.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'endogsim.identify' has no attribute {name!r}")

@@ -2,13 +2,14 @@
 
     materials (log10 E, nu per object)  --mpm_rollout-->  particle positions [T,P,3], F [T,P,3,3]
         --drive_gaussians-->  Gaussian means / covariances per frame (tools follow their rigid transforms)
-        --render_with_flow-->  RGB [T,H,W,3] and Gaussian flow t -> t+1 [T-1,H,W,2]
+        --render_with_flow-->  RGB [T,H,W,3] and Gaussian flow t -> t+1 [T-1,H,W,2] (or at every k-th frame)
 
 Every step is differentiable, so a loss on the renders back-propagates to log10 E and nu.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -25,17 +26,20 @@ __all__ = ["Rendered", "material_tables", "simulate_materials", "render_sequence
 
 @dataclass
 class Rendered:
-    """Renders of a simulated sequence.
+    """Renders of a simulated sequence at some of its frames.
 
     Attributes:
-        rgb: [T, H, W, 3] in [0, 1] (frame 0 is the rest state).
-        flow: [T-1, H, W, 2] Gaussian flow t -> t+1 (pixels of the rendered resolution).
-        alpha: [T, H, W] accumulated opacity.
+        rgb: [K, H, W, 3] in [0, 1], the frames ``frames`` (frame 0 is the rest state).
+        flow: [K', H, W, 2] Gaussian flow t -> t+1 (pixels of the rendered resolution) for the rendered
+            frames t with t + 1 < T (K' = K, or K - 1 when the last frame is rendered).
+        alpha: [K, H, W] accumulated opacity.
+        frames: the frame indices rendered (ascending).
     """
 
     rgb: torch.Tensor
     flow: torch.Tensor
     alpha: torch.Tensor
+    frames: list[int]
 
 
 def material_tables(field: MaterialField, params: MaterialParams | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -86,24 +90,27 @@ def _frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch
 
 
 def render_sequence(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
-                    backend: str = "auto") -> Rendered:
-    """Render every frame of a simulation and the Gaussian flow between consecutive frames.
+                    backend: str = "auto", frames: Sequence[int] | None = None) -> Rendered:
+    """Render frames of a simulation and the Gaussian flow from each to the next.
 
     Args:
         problem: the scene (Gaussians, binding, tool transforms).
         positions: [T, P, 3] particle positions (m); F: [T, P, 3, 3] deformation gradients.
         camera: the camera to render with (possibly scaled from ``problem.camera``).
+        frames: frame indices to render (default all T); each t < T - 1 also gets its flow t -> t+1.
     Returns:
         :class:`Rendered` (differentiable in positions and F).
     """
     g = problem.gaussians
     T = positions.shape[0]
+    frames = list(range(T)) if frames is None else sorted(set(int(t) for t in frames))
     cov0 = g.covariances().float().detach()
     opac = g.opacities.float().detach()
     colors = g.colors_dc.clamp(0, 1).float().detach() if g.sh_degree == 0 else g.sh.float().detach()
-    states = [_frame_gaussians(problem, positions, F, cov0, t) for t in range(T)]
+    needed = sorted(set(frames) | {t + 1 for t in frames if t + 1 < T})
+    states = {t: _frame_gaussians(problem, positions, F, cov0, t) for t in needed}
     rgbs, flows, alphas = [], [], []
-    for t in range(T):
+    for t in frames:
         m, c = states[t]
         if t + 1 < T:
             r = render_with_flow(m, opac, colors, camera, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
@@ -113,4 +120,5 @@ def render_sequence(problem: IdentifyProblem, positions: torch.Tensor, F: torch.
             r = rasterize(m, opac, colors, camera, covars=c, backend=backend)
         rgbs.append(r.rgb)
         alphas.append(r.alpha)
-    return Rendered(torch.stack(rgbs), torch.stack(flows), torch.stack(alphas))
+    flow = torch.stack(flows) if flows else torch.zeros(0, camera.height, camera.width, 2)
+    return Rendered(torch.stack(rgbs), flow, torch.stack(alphas), frames)

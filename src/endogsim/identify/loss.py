@@ -6,7 +6,9 @@ Each squared norm is the mean over the frame's valid pixels (RGB in [0, 1] summe
 pixels summed over x and y), so the value does not depend on the image size. I_t are the observed frames,
 I^_t the renders of the simulation; U the flow estimator on consecutive observed frames (computed once and
 cached in the run folder); U^_t the Gaussian flow of the simulated Gaussians. Frame 0 is the rest state
-shared by every simulation, so its render term is a constant and is left out.
+shared by every simulation, so its render term is a constant and is left out. With a frame stride k
+(:class:`~endogsim.identify.IdentifyConfig`) the sums run over t = 0, k, 2k, ... only: the simulation still
+covers every frame, but rendering, the costliest part on a CPU, shrinks k-fold.
 
 Valid pixels: those of deformable objects in the observed object masks (tools and background excluded;
 the flow term needs the pixel on tissue at both t and t+1). Without masks: every pixel.
@@ -149,14 +151,18 @@ def identification_loss(rendered: Rendered, obs: Observations, kind: str = "join
     """The loss and its parts.
 
     Args:
-        rendered: renders of the simulation (rgb [T,H,W,3], flow [T-1,H,W,2]).
+        rendered: renders of the simulation at ``rendered.frames`` (rgb [K,H,W,3], flow [K',H,W,2]).
         obs: the observations at the same size.
         kind: "joint" (render + flow_weight * flow), "render" or "flow" (flow_weight * flow).
     Returns:
         (loss, {"render": float, "flow": float, "total": float}); ``flow`` is the unweighted flow term.
     """
-    render_t = _masked_mean((rendered.rgb[1:] - obs.frames[1:]).square().sum(-1), obs.valid_rgb[1:])
-    flow_t = _masked_mean((rendered.flow - obs.flow).square().sum(-1), obs.valid_flow)
+    idx = torch.as_tensor(rendered.frames, dtype=torch.long)
+    rgb_sel = idx > 0  # frame 0 is the shared rest state: a constant
+    flow_idx = idx[: rendered.flow.shape[0]]
+    render_t = _masked_mean((rendered.rgb[rgb_sel] - obs.frames[idx[rgb_sel]]).square().sum(-1),
+                            obs.valid_rgb[idx[rgb_sel]])
+    flow_t = _masked_mean((rendered.flow - obs.flow[flow_idx]).square().sum(-1), obs.valid_flow[flow_idx])
     render, flow = render_t.sum(), flow_t.sum()
     if kind == "joint":
         total = render + flow_weight * flow

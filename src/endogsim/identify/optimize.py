@@ -52,7 +52,8 @@ class IdentifyResult:
         best_loss: its loss.
         iterations: iterations run in total (over resumes).
         seconds: optimisation wall time in total (over resumes).
-        stopped: "converged" (early stop), "iters" (budget spent) or "no_iterations".
+        stopped: "converged" (early stop), "iters" (iterations spent), "time_budget" (``config.time_budget``
+            seconds spent), "interrupted" (``stop_after``) or "no_iterations".
     """
 
     field: MaterialField
@@ -130,6 +131,7 @@ def _atomic_torch_save(obj, path: Path) -> None:
 def _signature(problem: IdentifyProblem, init: MaterialField, config: IdentifyConfig) -> dict:
     cfg = config.to_json()
     cfg.pop("iters", None)  # a resumed run may be given a larger budget
+    cfg.pop("time_budget", None)
     cfg.pop("device", None)
     return {"scene": str(Path(problem.folder).resolve()), "frames": problem.num_frames, "config": cfg,
             "init": init.to_json()["objects"]}
@@ -150,7 +152,7 @@ def evaluate_loss(problem: IdentifyProblem, fld: MaterialField, params: Material
     log10_E, nu, rho = material_tables(fld, params)
     with torch.set_grad_enabled(grad):
         pos, F = simulate_materials(problem, log10_E, nu, rho, problem.num_frames, config.grad_mode)
-        rendered = render_sequence(problem, pos, F, camera)
+        rendered = render_sequence(problem, pos, F, camera, frames=range(0, problem.num_frames, config.frame_stride))
         return identification_loss(rendered, obs, config.loss, config.flow_weight)
 
 
@@ -207,7 +209,10 @@ def identify(
             notes.append(f"object {oid}: initial E {float(before[s]):.4g} Pa is outside the search box "
                          f"[E_min, stability limit]; started from {float(after[s]):.4g} Pa")
     leaves = [params.log10_E] + ([params.nu_raw] if cfg.optimize_nu else [])
-    opt = torch.optim.Adam(leaves, lr=cfg.lr, betas=(0.9, 0.99))
+    groups = [{"params": [params.log10_E], "lr_scale": 1.0}]
+    if cfg.optimize_nu:
+        groups.append({"params": [params.nu_raw], "lr_scale": cfg.lr_nu / cfg.lr})
+    opt = torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99))
     sig = _signature(problem, init_field, cfg)
 
     start, history, best, seconds, stale = 0, [], None, 0.0, 0
@@ -231,10 +236,13 @@ def identify(
         if stop_after is not None and done_here >= stop_after:
             stopped = "interrupted"
             break
+        if cfg.time_budget is not None and seconds >= cfg.time_budget:
+            stopped = "time_budget"
+            break
         t0 = time.perf_counter()
         lr = cfg.lr * cfg.lr_final_fraction ** (k / max(cfg.iters - 1, 1))
         for gr in opt.param_groups:
-            gr["lr"] = lr
+            gr["lr"] = lr * gr["lr_scale"]
         opt.zero_grad(set_to_none=True)
         loss, parts = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
         loss.backward()
