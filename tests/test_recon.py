@@ -26,7 +26,7 @@ from endogsim.gaussians.render import render_gaussians
 from endogsim.recon.config import ReconConfig, load_config
 from endogsim.recon.deformation import DeformationConfig, DeformationField
 from endogsim.recon.hexplane import HexPlane
-from endogsim.recon.model import load_reconstruction
+from endogsim.recon.model import ReconResult, load_reconstruction
 from endogsim.recon.params import GaussianParams
 from endogsim.recon.tools import ToolMotion, axis_angle_to_quat
 from endogsim.recon.train import Interrupted, reconstruct
@@ -234,6 +234,11 @@ def test_fast_reconstruction_quality_and_outputs(fast_run):
         assert (out / name).is_file(), name
     on_disk = json.loads((out / "metrics.json").read_text())
     assert on_disk["psnr_masked"] == pytest.approx(m["psnr_masked"])
+    # the Python entry's result: paths the pipeline consumes, and the metrics
+    assert isinstance(m, ReconResult) and m.metrics_path == out / "metrics.json"
+    assert m.frame0_ply.is_file() and m.tool_trajectories.is_file() and m.objects.is_file()
+    assert ReconResult.from_run(out).metrics["num_gaussians"] == m["num_gaussians"]
+    assert on_disk["ssim"] == on_disk["ssim_masked"] and not on_disk["stopped_by_time_budget"]
     traj = json.loads((out / "tool_trajectories.json").read_text())["tools"]
     M = np.array(traj["1"]["transforms"])
     assert M.shape == (6, 4, 4)
@@ -299,6 +304,12 @@ def test_resume_after_interruption_continues_from_checkpoint(synthetic, tmp_path
     assert resumed["psnr_masked"] == pytest.approx(ref["psnr_masked"], abs=1e-3)
 
 
+def test_time_budget_stops_training_and_exports(synthetic, tmp_path):
+    m = reconstruct(synthetic, tmp_path / "run", ReconConfig(**{**FAST, "time_budget_s": 1e-6}), resume=False)
+    assert m["stopped_by_time_budget"] and m["iterations"] == 1
+    assert m.frame0_ply.is_file()
+
+
 def test_cli_reconstruct(synthetic, tmp_path):
     from typer.testing import CliRunner
 
@@ -317,8 +328,9 @@ def test_tiny_procedural_scene_reaches_30db(tmp_path):
     """The benchmark's `tiny` scene: >= 30 dB masked test PSNR in <= 5 minutes of training on a CPU."""
     synth = pytest.importorskip("endogsim.synth.generate")
     data = synth.synthesize("tiny", tmp_path / "tiny")
-    m = reconstruct(data, tmp_path / "run", ReconConfig(resolution_scale=1.0, iters=600), resume=False)
-    assert m["psnr_masked"] >= 30.0 and m["training_seconds"] <= 300
+    m = reconstruct(data, tmp_path / "run", ReconConfig(resolution_scale=1.0, iters=600, time_budget_s=300),
+                    resume=False)
+    assert m["psnr_masked"] >= 30.0 and m["training_seconds"] <= 300 + 30  # the budget is checked per iteration
     rec = load_reconstruction(tmp_path / "run")
     ids = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted((Path(data) / "object_masks").glob("*.png"))])
     g = rec.gaussians_at(0)

@@ -22,6 +22,8 @@ def register(app: typer.Typer) -> None:
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale",
                                                          help="Training image scale (default 0.5 on CPU, 1 on GPU)."),
         iters: Optional[int] = typer.Option(None, "--iters", help="Total iterations (coarse + deformation)."),
+        time_budget: Optional[float] = typer.Option(None, "--time-budget",
+                                                    help="Stop training after this many seconds and export."),
         device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
         max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use only the first frames."),
         depth_method: Optional[str] = typer.Option(None, "--depth-method",
@@ -42,6 +44,7 @@ def register(app: typer.Typer) -> None:
 
         dev = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
         cfg = load_config(config, defaults_for=dev, resolution_scale=resolution_scale, iters=iters, device=dev,
+                          time_budget_s=time_budget,
                           max_frames=max_frames, depth_method=depth_method, depth_weights=depth_weights,
                           seg_method=seg_method, seg_checkpoint=seg_checkpoint, seg_config=seg_config)
         with progress() as bar:
@@ -56,6 +59,7 @@ def register(app: typer.Typer) -> None:
                     f"{m['test_frames']})", ["metric", "value"],
                     [("PSNR masked (dB)", m["psnr_masked"]), ("PSNR EndoNeRF protocol (dB)", m["psnr_endonerf"]),
                      ("SSIM masked", m["ssim_masked"]), ("SSIM EndoNeRF protocol", m["ssim_endonerf"]),
-                     ("training seconds", m["training_seconds"]), ("Gaussians", m["num_gaussians"]),
+                     ("training seconds", m["training_seconds"]), ("iterations", m["iterations"]),
+                     ("Gaussians", m["num_gaussians"]),
                      ("depth prior", m["depth_source"]), ("segmentation", m["segmentation_source"])])
         console.print(f"wrote {out}")

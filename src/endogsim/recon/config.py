@@ -46,6 +46,8 @@ class ReconConfig:
         checkpoint_every: iterations between checkpoints (resume after an interruption).
         eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
             the evaluation time is not counted as training time.
+        time_budget_s: stop training once this many training seconds are spent (None: no limit) and
+            export what there is; ``metrics.json`` then says ``stopped_by_time_budget``.
     Initialisation:
         init_stride: back-project every ``init_stride``-th pixel in x and y.
         init_opacity: initial opacity of every Gaussian.
@@ -84,6 +86,7 @@ class ReconConfig:
     seed: int = 0
     checkpoint_every: int = 250
     eval_every: int = 0
+    time_budget_s: float | None = None
 
     init_stride: int = 2
     init_opacity: float = 0.7
@@ -135,6 +138,8 @@ class ReconConfig:
             raise DataError(f"init_stride {self.init_stride} must be >= 1")
         if not 0 < self.init_opacity < 1:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
+        if self.time_budget_s is not None and self.time_budget_s <= 0:
+            raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
         if self.device not in ("auto", "cpu", "cuda"):
             raise DataError(f"device {self.device!r} must be 'auto', 'cpu' or 'cuda'")
         return self

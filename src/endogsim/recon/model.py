@@ -23,10 +23,13 @@ Run-folder files (all written atomically):
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Iterator
 
 import torch
 
@@ -37,7 +40,7 @@ from endogsim.io.scene import ObjectLabel
 from endogsim.recon.deformation import DeformationField
 from endogsim.recon.tools import ToolMotion
 
-__all__ = ["compose_at", "Reconstruction", "load_reconstruction", "save_torch_atomic"]
+__all__ = ["compose_at", "Reconstruction", "ReconResult", "load_reconstruction", "save_torch_atomic"]
 
 
 def compose_at(tissue: Gaussians, tools: Gaussians | None, deformation: DeformationField | None,
@@ -73,6 +76,70 @@ def save_torch_atomic(obj, path: str | os.PathLike) -> Path:
         if os.path.exists(tmp):
             os.remove(tmp)
     return path
+
+
+#: ReconResult attribute -> file name in the run folder.
+RUN_FILES = {"frame0_ply": "frame0.ply", "canonical_ply": "canonical.ply", "deformation": "deformation.pt",
+             "tool_trajectories": "tool_trajectories.json", "tool_trajectories_npz": "tool_trajectories.npz",
+             "objects": "objects.json", "metrics_path": "metrics.json"}
+
+
+@dataclass(frozen=True, eq=False)
+class ReconResult(Mapping):
+    """What :func:`endogsim.recon.train.reconstruct` returns: the run folder's key files and its metrics.
+
+    It is also a read-only mapping over ``metrics`` (``result["psnr_masked"]``), so code that treats the
+    return value as the metrics dict keeps working.
+
+    Attributes:
+        run_dir: the run folder.
+        frame0_ply: Gaussians of frame 0 (tissue deformed to frame 0, tools at their frame-0 pose), with
+            an ``object_id`` per Gaussian; the simulator's initial state.
+        canonical_ply: canonical Gaussians (tissue then tools), with object ids.
+        deformation: ``deformation.pt`` (deformation field, tool motion, times, camera, labels).
+        tool_trajectories: ``tool_trajectories.json``: per tool id, its name and [T, 4, 4] rigid transforms
+            (canonical -> frame t, world metres); ``tool_trajectories_npz`` holds the same arrays.
+        objects: ``objects.json``: id -> name, is_tool, class.
+        metrics_path: ``metrics.json``.
+        metrics: its content (PSNR / SSIM of both protocols, training seconds, Gaussian counts, ...).
+    """
+
+    run_dir: Path
+    metrics: dict[str, Any]
+    frame0_ply: Path = field(init=False)
+    canonical_ply: Path = field(init=False)
+    deformation: Path = field(init=False)
+    tool_trajectories: Path = field(init=False)
+    tool_trajectories_npz: Path = field(init=False)
+    objects: Path = field(init=False)
+    metrics_path: Path = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "run_dir", Path(self.run_dir))
+        for attr, name in RUN_FILES.items():
+            object.__setattr__(self, attr, self.run_dir / name)
+
+    @staticmethod
+    def from_run(run_dir: str | os.PathLike) -> "ReconResult":
+        """The result of a finished run folder (reads ``metrics.json``)."""
+        run = Path(run_dir)
+        path = run / "metrics.json"
+        if not path.is_file():
+            raise ModelError(f"{path}: missing; is {run} a finished `endogsim reconstruct` run?")
+        return ReconResult(run, json.loads(path.read_text()))
+
+    def load(self, device: str = "cpu") -> "Reconstruction":
+        """The full 4D model (:func:`load_reconstruction`)."""
+        return load_reconstruction(self.run_dir, device)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.metrics[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.metrics)
+
+    def __len__(self) -> int:
+        return len(self.metrics)
 
 
 @dataclass

@@ -39,7 +39,7 @@ from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
 from endogsim.recon.init import initial_gaussians
-from endogsim.recon.model import compose_at, save_torch_atomic
+from endogsim.recon.model import ReconResult, compose_at, save_torch_atomic
 from endogsim.recon.params import GaussianParams
 from endogsim.recon.tools import ToolMotion
 
@@ -94,6 +94,7 @@ class Trainer:
         self.iteration = 0
         self.elapsed = 0.0
         self.history: list[dict] = []
+        self.stopped_by_time_budget = False
         self.gen = torch.Generator().manual_seed(config.seed)
         self._order: list[int] = []
 
@@ -285,6 +286,9 @@ class Trainer:
         done_here = 0
         try:
             while self.iteration < c.iters:
+                if c.time_budget_s is not None and self.elapsed >= c.time_budget_s:
+                    self.stopped_by_time_budget = True
+                    break
                 t0 = time.perf_counter()
                 info = self.step()
                 self.elapsed += time.perf_counter() - t0  # training time only (no evaluation, no I/O)
@@ -389,8 +393,10 @@ class Trainer:
         ev = self.evaluate(self.prep.test, out / "renders")
         per_frame = ev.pop("per_frame")
         metrics = {
-            **ev, "test_frames": self.prep.test, "per_frame": per_frame, "train_frames": len(self.prep.train),
+            **ev, "ssim": ev["ssim_masked"], "test_frames": self.prep.test, "per_frame": per_frame,
+            "train_frames": len(self.prep.train),
             "training_seconds": round(self.elapsed, 2), "iterations": self.iteration,
+            "stopped_by_time_budget": self.stopped_by_time_budget,
             "num_gaussians": len(canonical), "num_tissue_gaussians": len(tissue),
             "num_tool_gaussians": 0 if tools is None else len(tools),
             "resolution": [sc.width, sc.height], "device": str(self.device),
@@ -406,8 +412,12 @@ class Trainer:
 
 
 def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | None = None, *,
-                progress: ProgressFn | None = None, resume: bool = True, stop_after: int | None = None) -> dict:
-    """Reconstruct a dataset into a run folder; returns the metrics (also in ``metrics.json``).
+                progress: ProgressFn | None = None, resume: bool = True, stop_after: int | None = None) -> ReconResult:
+    """Reconstruct a dataset into a run folder.
+
+    Returns a :class:`~endogsim.recon.model.ReconResult`: the paths of the frame-0 Gaussians PLY (object
+    ids), the tool trajectories and ``metrics.json``, and the metrics (it reads like the metrics dict).
+    Resuming a finished run folder trains no further and writes its outputs again.
 
     Args:
         data: EndoNeRF / CholecSeg8K / procedural folder or a video file.
@@ -439,4 +449,4 @@ def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | Non
     trainer.run(progress, stop_after)
     metrics = trainer.export()
     trainer.save_checkpoint()
-    return metrics
+    return ReconResult(out, metrics)
