@@ -1,0 +1,257 @@
+"""``endogsim bench suite``: the benchmark suite and the paper's tables, in this process or on a Ray cluster.
+
+For every suite scene (``endogsim/data/benchmark_suite.json``; ``tiny`` is a test scene and is not in the
+default list) :func:`run_scene` synthesizes the scene once (cached under the scenes folder), then identifies
+its materials from the ``manual`` and the ``prior`` initialisation, each with optimisation off (iters 0:
+the initial guess scored) and on; on ``two_tissues`` it adds one run with a single global material.
+The tables:
+
+  Table 2  RE / EPE per scene and their average (prior initialisation, optimisation on: the full method)
+  Table 3  initialisation x optimisation: RE / EPE / FID averaged over the scenes (FID only with a local
+           Inception weights file, else "n/a")
+  Ablation object-wise material field vs one global material on ``two_tissues``
+
+RE = mean relative error of E, nu, G, K against the ground truth; EPE in pixels against the ground-truth
+flow. ``--ray`` runs :func:`run_scene` for the scenes in parallel as Ray tasks (one CPU each), on a local
+cluster started for the run or on ``--ray-address ADDRESS``; without it they run one after the other here.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from endogsim.cli.common import user_errors
+from endogsim.errors import EndoGSimError
+
+__all__ = ["run_scene", "run_suite", "suite_tables"]
+
+RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
+ABLATION_SCENE = "two_tissues"
+
+
+def _default_scenes() -> list[str]:
+    from endogsim.synth.spec import suite_scene_names
+
+    return [n for n in suite_scene_names() if n != "tiny"]
+
+
+
+
+def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = 30,
+              frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
+              fid_weights: str | None = None, threads: int | None = None) -> dict:
+    """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
+
+    Args:
+        name: suite scene.
+        scenes_dir: cache of synthesized scenes (``NAME`` or ``NAME_fFRAMES``).
+        work_dir: run folders go to ``work_dir/NAME/{manual,prior}_{off,on}`` (and ``global_on``).
+        iters: optimisation iterations of the "on" runs.
+        frames: synthesize only this many frames (default: the suite's).
+        render_scale: identification render scale.
+        global_ablation: add the global-material run (default: only on ``two_tissues``).
+        fid_weights: local Inception weights; FID of every run's simulated vs observed frames.
+        threads: torch threads in this process (Ray tasks use 1 so parallel scenes do not oversubscribe).
+    Returns:
+        {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, epe, psnr, ssim, fid, seconds, materials}},
+        "wall_seconds"}
+    """
+    import torch
+
+    from endogsim.bench.identify import ensure_scene
+    from endogsim.identify import IdentifyConfig, load_problem, run_identify
+
+    if threads:
+        torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    work = Path(work_dir) / name
+    folder = ensure_scene(name, Path(scenes_dir), frames)
+    problem = load_problem(folder)
+    net = None
+    if fid_weights:
+        from endogsim.evaluate.fid import load_inception
+
+        net = load_inception(fid_weights)
+    plan = [(f"{init}_{'on' if on else 'off'}", init, on, False) for init, on in RUNS]
+    if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
+        plan.append(("global_on", "prior", True, True))
+    runs = {}
+    for key, init, on, glob in plan:
+        cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob)
+        m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
+        rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "seconds", "iterations")}
+        rec["materials"] = {n: {"E": v["E"], "nu": v["nu"]} for n, v in m["materials"].items() if not v["rigid"]}
+        rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
+        runs[key] = rec
+    return {"scene": name, "folder": str(folder), "runs": runs, "wall_seconds": time.perf_counter() - t0}
+
+
+def _run_fid(problem, run_dir: Path, net) -> float:
+    """FID between the observed frames and the frames simulated with the run's identified materials."""
+    from endogsim.evaluate.fid import fid
+    from endogsim.identify.report import evaluate_field
+    from endogsim.materials.field import MaterialField
+
+    ev = evaluate_field(problem, MaterialField.load(run_dir / "materials_identified.json"))
+    return fid(problem.frames, ev.rgb, net=net)
+
+
+def _ray_map(kwargs_list: list[dict], address: str | None, log) -> list[dict]:
+    """:func:`run_scene` over ``kwargs_list`` as Ray tasks; results in input order."""
+    try:
+        import ray
+    except ImportError:
+        raise EndoGSimError("--ray needs Ray, which is not installed: pip install 'endogsim[ray]'") from None
+    started = not ray.is_initialized()
+    if started:
+        # One CPU per scene; the workers inherit this interpreter (and so the installed endogsim).
+        env = {"env_vars": {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}}
+        if address:
+            ray.init(address=address, runtime_env=env, log_to_driver=False)
+        else:
+            ray.init(include_dashboard=False, runtime_env=env, log_to_driver=False)
+    try:
+        log(f"ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs, {len(kwargs_list)} scene tasks")
+        task = ray.remote(num_cpus=1, max_retries=0)(run_scene)
+        refs = [task.remote(**{**kw, "threads": 1}) for kw in kwargs_list]
+        try:
+            return ray.get(refs)
+        except ray.exceptions.RayTaskError as exc:
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, EndoGSimError):
+                raise cause from None
+            raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = Path.home() / ".cache" / "endogsim" / "bench_scenes",
+              work_dir: str | os.PathLike = "bench_suite_runs", iters: int | None = None, quick: bool = False,
+              frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
+              ray_address: str | None = None, threads: int | None = None, log=print) -> dict:
+    """Run the suite (module docstring) and build the tables.
+
+    Args:
+        scenes: suite scenes (default: every suite scene except ``tiny``; ``--quick``: ``tiny``).
+        iters: iterations of the optimised runs (default 30; quick 2).
+        quick: ``tiny``, 4 frames, 2 iterations: a smoke run of the whole machinery (minutes on a CPU).
+        frames: frames to synthesize per scene (default: the suite's; quick 4).
+        ray, ray_address: run the scenes as Ray tasks (local cluster unless an address is given).
+        threads: torch threads of the in-process path (Ray tasks always use 1). On a CPU shared with other
+            work, 1 can be several times faster than torch's default pool.
+    Returns:
+        {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "wall_seconds"}
+    """
+    from endogsim.synth.spec import suite_scene_names
+
+    t0 = time.perf_counter()
+    scenes = list(scenes) if scenes else (["tiny"] if quick else _default_scenes())
+    unknown = [s for s in scenes if s not in suite_scene_names()]
+    if unknown:
+        raise EndoGSimError(f"unknown suite scene(s) {', '.join(unknown)}; choose from {', '.join(suite_scene_names())}")
+    n_it = iters if iters is not None else (2 if quick else 30)
+    n_fr = frames if frames is not None else (4 if quick else None)
+    kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
+               fid_weights=str(fid_weights) if fid_weights else None) for s in scenes]
+    if fid_weights:  # fail before hours of work, not after
+        from endogsim.evaluate.fid import load_inception
+
+        load_inception(fid_weights)
+    if ray:
+        results = _ray_map(kw, ray_address, log)
+    else:
+        results = []
+        for k in kw:
+            log(f"scene {k['name']} ...")
+            results.append(run_scene(**k, threads=threads))
+    per_scene = {r["scene"]: r for r in results}
+    for r in results:
+        log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
+    return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
+                         "ray_address": ray_address, "fid": bool(fid_weights)},
+            "scenes": per_scene, "tables": suite_tables(per_scene), "wall_seconds": time.perf_counter() - t0}
+
+
+def _mean(vals: list[float]) -> float:
+    vals = [v for v in vals if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return sum(vals) / len(vals) if vals else math.nan
+
+
+def suite_tables(per_scene: dict[str, dict]) -> dict:
+    """Table 2, Table 3 and the material-field ablation from :func:`run_scene` results."""
+    names = list(per_scene)
+    rows2 = [[n, per_scene[n]["runs"]["prior_on"]["re_mean"], per_scene[n]["runs"]["prior_on"]["epe"]] for n in names]
+    if rows2:
+        rows2.append(["average", _mean([r[1] for r in rows2]), _mean([r[2] for r in rows2])])
+    rows3 = []
+    for init, on in RUNS:
+        key = f"{init}_{'on' if on else 'off'}"
+        fids = [per_scene[n]["runs"][key]["fid"] for n in names]
+        rows3.append([init, "on" if on else "off", _mean([per_scene[n]["runs"][key]["re_mean"] for n in names]),
+                      _mean([per_scene[n]["runs"][key]["epe"] for n in names]),
+                      _mean(fids) if any(f is not None for f in fids) else "n/a"])
+    abl = {"title": f"Material field ablation on {ABLATION_SCENE}",
+           "columns": ["variant", "RE", "EPE (px)", "identified (E Pa / nu)"], "rows": []}
+    src = next((per_scene[n] for n in names if "global_on" in per_scene[n]["runs"]), None)
+    if src is None:
+        abl["note"] = f"not run: {ABLATION_SCENE} is not among the scenes"
+    else:
+        abl["title"] = f"Material field ablation on {src['scene']}"
+        for key, label in (("prior_on", "object-wise material field"), ("global_on", "one global material")):
+            r = src["runs"][key]
+            mats = "; ".join(f"{n} {v['E']:.4g} / {v['nu']:.3f}" for n, v in r["materials"].items())
+            abl["rows"].append([label, r["re_mean"], r["epe"], mats])
+    return {
+        "table2": {"title": "Table 2: identification per scene (prior init, optimisation on)",
+                   "columns": ["scene", "RE", "EPE (px)"], "rows": rows2},
+        "table3": {"title": "Table 3: initialisation x optimisation (mean over scenes)",
+                   "columns": ["init", "optimisation", "RE", "EPE (px)", "FID"], "rows": rows3},
+        "ablation": abl,
+    }
+
+
+def register(bench_app: typer.Typer) -> None:
+    """Add ``suite`` to the ``bench`` sub-app."""
+
+    @bench_app.command("suite")
+    @user_errors
+    def bench_suite(
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write settings, per-scene runs and tables as JSON."),
+        ray: bool = typer.Option(False, "--ray", help="Run the scenes in parallel as Ray tasks (a local cluster "
+                                 "unless --ray-address is given)."),
+        ray_address: Optional[str] = typer.Option(None, "--ray-address",
+                                                  help="Ray cluster address (e.g. ray://host:10001 or auto); implies --ray."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but tiny)."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations of the optimised runs (default 30; quick 2)."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Frames per synthesized scene (default: the suite's)."),
+        quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
+        fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
+        threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
+        scenes_dir: Path = typer.Option(Path.home() / ".cache" / "endogsim" / "bench_scenes", "--scenes-dir",
+                                        help="Where scenes are synthesized (reused)."),
+        work_dir: Path = typer.Option(Path("bench_suite_runs"), "--work-dir", help="Run folders."),
+    ) -> None:
+        """The benchmark suite: Table 2 (RE/EPE per scene), Table 3 (init x optimisation, RE/EPE/FID) and the
+        material-field ablation."""
+        from endogsim.cli.common import console, print_table, write_json_atomic
+
+        use_ray = ray or ray_address is not None
+        address = ray_address
+        res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
+                        frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
+                        ray_address=address, threads=threads, log=console.print)
+        for t in res["tables"].values():
+            print_table(t["title"], t["columns"], t["rows"])
+            if t.get("note"):
+                console.print(f"  ({t['note']})")
+        console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'})")
+        if json_out is not None:
+            write_json_atomic(json_out, res)
+            console.print(f"wrote {json_out}")

@@ -1,0 +1,255 @@
+"""One HTML page per run that opens offline: videos, flow error maps, plots, materials and metrics.
+
+:func:`write_report` reads a run folder (``endogsim identify`` layout, see :mod:`endogsim.identify.report`)
+and optionally ``endogsim simulate`` output folders, and writes ``report.html``:
+
+  * videos side by side: the run's ``comparison.mp4`` (observed | simulated | flow error) and each
+    simulation's ``simulation.mp4``, linked by relative path (the page and the folders move together);
+  * stills of the first, middle and last frame split into observed / simulated / flow error map
+    (inferno, 0..1 px), decoded from ``comparison.mp4`` and embedded as base64 PNG;
+  * ``loss.png`` and ``parameters.png`` embedded as base64 PNG;
+  * the material table (identified and initial values, ground truth where the scene has it, E range,
+    source, confidence) and the metrics (RE, EPE, PSNR, SSIM, FID when Inception weights are given).
+
+Nothing is fetched from the network: no scripts, fonts or stylesheets from elsewhere.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from endogsim.errors import DataError, ModelError
+
+__all__ = ["write_report", "read_video", "comparison_panels"]
+
+_CSS = """
+body{font-family:system-ui,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em;color:#222;max-width:1400px}
+h1{font-size:1.5em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.5em}
+table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td.l,th.l{text-align:left}.row{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start}
+figure{margin:0}figcaption{font-size:.85em;color:#555}video,img{max-width:100%}pre{background:#f7f7f7;padding:.6em}
+.note{color:#666;font-size:.9em}
+"""
+
+
+def read_video(path: str | os.PathLike) -> np.ndarray:
+    """All frames of a video file as uint8 [T, H, W, 3] (decoded with imageio-ffmpeg)."""
+    import imageio_ffmpeg
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: video not found")
+    gen = imageio_ffmpeg.read_frames(str(path))
+    meta = next(gen)
+    w, h = meta["size"]
+    frames = [np.frombuffer(b, np.uint8).reshape(h, w, 3) for b in gen]
+    if not frames:
+        raise DataError(f"{path}: no frames")
+    return np.stack(frames)
+
+
+def comparison_panels(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split comparison frames [T, H, 3W(+pad), 3] into observed, simulated, flow error [T, H, W, 3] each."""
+    w = frames.shape[2] // 3
+    return frames[:, :, :w], frames[:, :, w:2 * w], frames[:, :, 2 * w:3 * w]
+
+
+def _png_data_uri(img: np.ndarray) -> str:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))
+    if not ok:
+        raise DataError("could not encode a PNG for the report")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _file_data_uri(path: Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _e(v) -> str:
+    return html.escape(str(v), quote=True)
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None:
+        return "&ndash;"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return "n/a" if math.isnan(v) else f"{v:.{digits}g}"
+    return _e(v)
+
+
+def _table(columns: list[str], rows: list[list], left: int = 1) -> str:
+    head = "".join(f'<th class="l">{_e(c)}</th>' if i < left else f"<th>{_e(c)}</th>" for i, c in enumerate(columns))
+    body = "".join("<tr>" + "".join(f'<td class="l">{_fmt(v)}</td>' if i < left else f"<td>{_fmt(v)}</td>"
+                                    for i, v in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _load_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text()) if path.is_file() else None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{path}: not valid JSON ({exc})") from None
+
+
+def _material_rows(run: Path, metrics: dict) -> tuple[list[str], list[list]]:
+    ident = _load_json(run / "materials_identified.json") or {"objects": []}
+    init = {o["object_id"]: o for o in (_load_json(run / "materials_init.json") or {"objects": []})["objects"]}
+    truth = {}
+    folder = metrics.get("folder")
+    if folder and (Path(folder) / "scene.json").is_file():
+        scene = json.loads((Path(folder) / "scene.json").read_text())
+        truth = {o["id"]: o for o in scene.get("objects", [])}
+    re_obj = metrics.get("re_objects") or {}
+    cols = ["object", "id", "class", "model", "E (Pa)", "nu", "density (kg/m^3)", "E range (Pa)", "source",
+            "confidence", "init E (Pa)", "init nu", "init source", "true E (Pa)", "true nu", "RE"]
+    rows = []
+    for o in ident["objects"]:
+        i0 = init.get(o["object_id"], {})
+        t = truth.get(o["object_id"], {})
+        rng = (f"{o['E_min']:.3g} – {o['E_max']:.3g}" if o.get("E_min") is not None and o.get("E_max") is not None
+               else None)
+        re = (re_obj.get(o["name"]) or {}).get("mean")
+        rows.append([o["name"], o["object_id"], o.get("klass"), o.get("model"), o["E"], o["nu"], o["density"], rng,
+                     o.get("source"), o.get("confidence"), i0.get("E"), i0.get("nu"), i0.get("source"),
+                     None if o.get("rigid") else t.get("E"), None if o.get("rigid") else t.get("nu"), re])
+    return cols, rows
+
+
+def _fid_cell(observed: np.ndarray | None, simulated: np.ndarray | None, fid_weights) -> tuple[float | str, str]:
+    """(FID or 'n/a', note)."""
+    from endogsim.evaluate.fid import FID_WEIGHTS_ENV, fid
+
+    if fid_weights is None and not os.environ.get(FID_WEIGHTS_ENV):
+        return "n/a", f"FID: n/a (no Inception weights; pass --fid-weights FILE or set ${FID_WEIGHTS_ENV})"
+    if observed is None or len(observed) < 2:
+        return "n/a", "FID: n/a (no comparison.mp4 to take frames from)"
+    try:
+        return fid(observed, simulated, fid_weights), "FID between the observed and simulated panels of comparison.mp4"
+    except ModelError as exc:
+        return "n/a", f"FID: n/a ({exc})"
+
+
+def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike] | tuple = (),
+                 out: str | os.PathLike | None = None, fid_weights: str | os.PathLike | None = None,
+                 title: str | None = None) -> Path:
+    """Write the HTML report of a run folder; returns its path (default ``run_dir/report.html``).
+
+    Args:
+        run_dir: an ``endogsim identify`` run folder (metrics.json required).
+        simulations: ``endogsim simulate`` output folders to show (summary.json, simulation.mp4).
+        out: the HTML file to write; linked files are referenced relative to its folder.
+        fid_weights: local Inception-v3 weights for FID (else FID is "n/a" with the reason).
+        title: page title (default from the scene name).
+    """
+    run = Path(run_dir)
+    metrics = _load_json(run / "metrics.json")
+    if metrics is None:
+        raise DataError(f"{run}: no metrics.json (not an `endogsim identify` run folder)")
+    out = Path(out) if out is not None else run / "report.html"
+    base = out.parent
+    rel = lambda p: Path(os.path.relpath(Path(p).resolve(), base.resolve())).as_posix()  # noqa: E731
+    scene = metrics.get("scene", "scene")
+    title = title or f"EndoGSim report: {scene}"
+    parts = [f"<h1>{_e(title)}</h1>",
+             f'<p class="note">run folder {_e(run)}; scene folder {_e(metrics.get("folder", "?"))}; '
+             f'init {_e(metrics.get("init"))}; loss {_e(metrics.get("loss"))}; '
+             f'{_e(metrics.get("iterations"))} iterations ({_e(metrics.get("stopped"))}), '
+             f'{_fmt(metrics.get("seconds"), 3)} s</p>']
+
+    # Videos side by side.
+    vids = []
+    comp = run / "comparison.mp4"
+    if comp.is_file():
+        vids.append((rel(comp), "observed | simulated | flow error |U_sim - U_ref| (0..1 px) with the identified materials"))
+    sims = []
+    for d in simulations:
+        d = Path(d)
+        s = _load_json(d / "summary.json")
+        if s is None:
+            raise DataError(f"{d}: no summary.json (not an `endogsim simulate` output folder)")
+        sims.append((d, s))
+        if (d / s["files"]["video"]).is_file():
+            vids.append((rel(d / s["files"]["video"]), f"new interaction {s['interaction']['name']!s}: "
+                                                         f"{s['interaction'].get('description', '')}"))
+    parts.append("<h2>Videos</h2>")
+    if vids:
+        parts.append('<div class="row">' + "".join(
+            f'<figure><video controls loop muted playsinline src="{_e(src)}"></video>'
+            f"<figcaption>{_e(cap)} (<a href=\"{_e(src)}\">{_e(src)}</a>)</figcaption></figure>"
+            for src, cap in vids) + "</div>")
+    else:
+        parts.append('<p class="note">no video in the run folder (identify ran with --no-video)</p>')
+
+    # Stills: observed / simulated / flow error map.
+    observed = simulated = None
+    if comp.is_file():
+        frames = read_video(comp)
+        observed, simulated, err = comparison_panels(frames)
+        T = len(frames)
+        parts.append("<h2>Observed, simulated and flow error maps</h2>")
+        parts.append('<p class="note">flow error = |simulated Gaussian flow - reference flow| per pixel '
+                     "(reference: ground truth when the scene has it, else the observed-flow estimate); "
+                     "inferno colour scale, black 0 px, yellow &ge; 1 px</p>")
+        for t in sorted({0, T // 2, T - 1}):
+            parts.append(f"<h3>frame {t}</h3><div class=\"row\">" + "".join(
+                f'<figure><img alt="{_e(n)} frame {t}" src="{_png_data_uri(im[t])}"><figcaption>{_e(n)}</figcaption></figure>'
+                for n, im in (("observed", observed), ("simulated", simulated), ("flow error", err))) + "</div>")
+
+    # Plots.
+    plots = [(n, run / n) for n in ("loss.png", "parameters.png") if (run / n).is_file()]
+    if plots:
+        parts.append("<h2>Optimisation</h2><div class=\"row\">" + "".join(
+            f'<figure><img alt="{_e(n)}" src="{_file_data_uri(p)}"><figcaption>{_e(n)}</figcaption></figure>'
+            for n, p in plots) + "</div>")
+
+    # Materials.
+    cols, rows = _material_rows(run, metrics)
+    parts.append("<h2>Material field</h2>" + _table(cols, rows, left=4))
+    parts.append('<p class="note">E in Pa, density in kg/m^3; the range is the prior\'s plausible E interval '
+                 "(from the initialiser); RE = mean relative error of E, nu, G, K against the ground truth.</p>")
+
+    # Metrics.
+    fid_value, fid_note = _fid_cell(observed, simulated, fid_weights)
+    keys = [("re_mean", "RE mean"), ("re_E", "RE E"), ("re_nu", "RE nu"), ("re_G", "RE G"), ("re_K", "RE K"),
+            ("epe", "EPE (px)"), ("psnr", "PSNR (dB)"), ("ssim", "SSIM"), ("best_loss", "best loss"),
+            ("iterations", "iterations"), ("seconds", "seconds")]
+    mrows = [[label, metrics[k]] for k, label in keys if k in metrics]
+    mrows.append(["FID", fid_value])
+    init_m = metrics.get("init_metrics")
+    if isinstance(init_m, dict):
+        mrows += [[f"init {k}", v] for k, v in init_m.items()]
+    parts.append("<h2>Metrics</h2>" + _table(["metric", "value"], mrows) + f'<p class="note">{_e(fid_note)}</p>')
+
+    # Simulations.
+    for d, s in sims:
+        parts.append(f"<h2>Simulation: {_e(s['interaction']['name'])}</h2>")
+        srows = [[name, v.get("max_mm"), v.get("max_last_mm"), v.get("mean_last_mm")] for name, v in s["displacement"].items()]
+        parts.append(_table(["object", "max displacement (mm)", "max at last frame (mm)", "mean at last frame (mm)"], srows))
+        mats = "; ".join(f"{n}: E {v['E']:.4g} Pa, nu {v['nu']:.3f} ({v['source']})"
+                         for n, v in s["materials"].items() if not v["rigid"])
+        ply = s["files"].get("ply") or []
+        ply_link = f'; PLY sequence: <a href="{_e(rel(d / ply[0]))}">{_e(rel(d / ply[0]))}</a> ... ({len(ply)} files)' if ply else ""
+        parts.append(f'<p class="note">{s["frames"]} frames of {s["frame_dt"] * 1e3:.3g} ms, {s["substeps"]} substeps; '
+                     f"materials {_e(mats)}{ply_link}</p>")
+
+    summary = run / "summary.txt"
+    if summary.is_file():
+        parts.append(f"<h2>Summary</h2><pre>{_e(summary.read_text())}</pre>")
+    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+           f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(doc, encoding="utf-8")
+    tmp.replace(out)
+    return out
