@@ -133,12 +133,13 @@ def run_pipeline(
 
         summary = simulate_interaction(out / "scene", cfg.interaction, out / "identify" / "materials_identified.json",
                                        out / "simulate")
-        return {"interaction": cfg.interaction, "summary": summary if isinstance(summary, dict) else str(summary)}
+        return {"interaction": cfg.interaction, "summary": summary}
 
     def report_stage() -> dict:
         from endogsim.evaluate.report_html import write_report
 
-        return {"report": str(write_report(out))}
+        sims = [out / "simulate"] if (out / "simulate" / "summary.json").is_file() else []
+        return {"report": str(write_report(out / "identify", simulations=sims, out=out / "report.html"))}
 
     steps = {"reconstruct": reconstruct_stage, "scenario": scenario_stage, "identify": identify_stage,
              "simulate": simulate_stage, "report": report_stage}
