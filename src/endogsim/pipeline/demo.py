@@ -39,8 +39,10 @@ class DemoConfig:
     scene: str = "tiny"
     frames: int | None = None
     seed: int = 0
-    recon: dict[str, Any] = field(default_factory=lambda: {"resolution_scale": 1.0})
-    identify: dict[str, Any] = field(default_factory=dict)
+    # Time budgets keep the whole demo within about 10 minutes on a 2-core CPU; each stage stops at its
+    # budget with its best result so far.
+    recon: dict[str, Any] = field(default_factory=lambda: {"resolution_scale": 1.0, "iters": 600, "time_budget_s": 180.0})
+    identify: dict[str, Any] = field(default_factory=lambda: {"iters": 10, "time_budget": 180.0})
     interaction: str | None = "poke"
     tool_motion: str = "truth"
 
