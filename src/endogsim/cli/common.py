@@ -17,7 +17,9 @@ from rich.table import Table
 
 from endogsim.errors import EndoGSimError
 
-console = Console(stderr=False)
+# Piped or logged output (no terminal) gets a wide console so tables are not cut to 80 columns.
+_WIDTH = None if os.isatty(1) or os.environ.get("COLUMNS") else 160
+console = Console(stderr=False, width=_WIDTH)
 err_console = Console(stderr=True)
 F = TypeVar("F", bound=Callable[..., Any])
 

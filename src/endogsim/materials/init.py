@@ -62,6 +62,8 @@ def initialise_materials(
         raise MaterialError(f"unknown materials backend {cfg.backend!r}; choose one of {BACKENDS}")
     if cfg.regime not in REGIMES:
         raise MaterialError(f"unknown regime {cfg.regime!r}; choose one of {REGIMES}")
+    # The field-of-view border (CholecSeg8K class 50) is a label, not an object with a material.
+    labels = {oid: lab for oid, lab in labels.items() if lab.klass != "background"}
     if not labels:
         raise DataError("no objects: the label table is empty")
     meta: dict = {"backend": cfg.backend, "regime": cfg.regime, "prior_version": load_prior_table()["version"]}
