@@ -259,7 +259,7 @@ def scene_from_reconstruction(
     write_ply(g0.detach(), tmp / "gaussians_t0.ply")
     K = cam.K.double().tolist()
     doc = {
-        "name": name or data.name, "seed": gt.seed if gt is not None else 0, "frames": T, "objects": objects,
+        "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0, "frames": T, "objects": objects,
         "scenario": scenario,
         "camera": {"K": K, "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist()},
         "depth_scale": gt.depth_scale if gt is not None else 10000.0, "files": files,
