@@ -87,7 +87,10 @@ class IdentifyProblem:
 
     @property
     def has_truth(self) -> bool:
-        return self.truth.source in ("procedural",) or bool(self.truth.objects)
+        """Whether every deformable object has ground-truth E and nu (synthesized scenes; not a real video's
+        scene built from a reconstruction, whose scene.json leaves them null)."""
+        deformable = [o for o in self.truth.objects if not o.rigid]
+        return bool(deformable) and all(o.E is not None and o.nu is not None for o in deformable)
 
 
 def capsule_collider_points(tip, end, radius: float, dx: float) -> tuple[np.ndarray, float]:

@@ -82,9 +82,9 @@ def evaluate_field(problem: IdentifyProblem, fld: MaterialField, observed_flow: 
 
 def material_errors(problem: IdentifyProblem, fld: MaterialField) -> dict | None:
     """RE of the deformable objects against ``scene.json``'s ground truth (every synthesized scene has it)."""
-    truth = {o.name: (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
-    if not truth:
+    if not problem.has_truth:
         return None
+    truth = {o.name: (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
     est = {o.name: (fld[o.id].E, fld[o.id].nu) for o in problem.truth.objects if not o.rigid}
     return scene_relative_errors(est, truth)
 
@@ -144,7 +144,7 @@ def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: Identif
     write_json_atomic(run / "metrics.json", metrics)
 
     names = {str(o.id): o.name for o in problem.truth.objects}
-    truth = {str(o.id): (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
+    truth = {str(o.id): (o.E, o.nu) for o in problem.truth.objects if not o.rigid} if problem.has_truth else {}
     if result.history:
         plot_loss(result.history, run / "loss.png", result.best_iteration, title=f"{problem.truth.name}: {config.loss} loss")
         plot_parameters(result.history, run / "parameters.png", names, truth)
