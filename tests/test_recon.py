@@ -29,7 +29,9 @@ from endogsim.recon.hexplane import HexPlane
 from endogsim.recon.model import ReconResult, load_reconstruction
 from endogsim.recon.params import GaussianParams
 from endogsim.recon.tools import ToolMotion, axis_angle_to_quat
-from endogsim.recon.train import Interrupted, reconstruct
+from endogsim.recon.data import prepare_scene
+from endogsim.recon.init import initial_gaussians
+from endogsim.recon.train import Interrupted, Trainer, reconstruct
 
 # ----------------------------------------------------------------------------------------------- synthetic data
 W, H, FOCAL = 64, 48, 60.0
@@ -206,6 +208,25 @@ def test_densify_and_prune_keeps_optimizer_state_aligned():
     loss = sum(p.square().sum() for p in gp.params.values())
     loss.backward()
     gp.step()  # the optimiser still works after the edit
+
+
+def test_init_scale_sets_the_initial_footprint(synthetic):
+    prep = prepare_scene(synthetic, ReconConfig(**FAST))
+    a = initial_gaussians(prep, 2, scale=0.6).tissue
+    b = initial_gaussians(prep, 2, scale=0.3).tissue
+    assert torch.equal(a.means, b.means)
+    assert torch.allclose((b.log_scales - a.log_scales).exp(), torch.tensor(0.5))
+
+
+def test_densification_growth_per_step_is_bounded(synthetic, tmp_path):
+    """Every candidate passes a zero threshold, but one step adds at most densify_max_growth of the set."""
+    cfg = ReconConfig(**{**FAST, "densify_grad_threshold": 0.0, "densify_max_growth": 0.1, "densify_from": 0.0,
+                         "densify_every": 1, "prune_opacity": 1e-9})
+    tr = Trainer(prepare_scene(synthetic, cfg), cfg, tmp_path)
+    tr.init_fresh()
+    n0 = len(tr.tissue)
+    info = tr.step()
+    assert "densify" in info and n0 < len(tr.tissue) <= int(n0 * 1.1)
 
 
 # ----------------------------------------------------------------------------------------------- config

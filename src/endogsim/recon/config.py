@@ -10,8 +10,10 @@ A config file holds any subset of the fields below (unknown keys are refused); t
     feature_dim = 16
     resolution = [32, 32, 32]
 
-Defaults are for a CPU (half resolution, a few tens of thousands of Gaussians, ~3000 iterations);
-:func:`default_config` ("cuda") switches to full resolution and the Endo-4DGS schedule.
+Defaults are for a 2-core CPU, where the cost of an iteration is the number of (pixel, Gaussian) pairs
+the rasteriser composites plus the deformation of every Gaussian: half resolution, ~10k Gaussians from
+every 3rd pixel with small initial footprints, a short static stage, bounded densification after it,
+2000 iterations. :func:`default_config` ("cuda") switches to full resolution and the Endo-4DGS schedule.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class ReconConfig:
             export what there is; ``metrics.json`` then says ``stopped_by_time_budget``.
     Initialisation:
         init_stride: back-project every ``init_stride``-th pixel in x and y.
+        init_scale: initial standard deviation in units of the grid spacing (smaller: fewer pixel-Gaussian
+            pairs, i.e. a cheaper CPU render, still without holes down to ~0.4).
         init_opacity: initial opacity of every Gaussian.
         sh_degree: SH degree of the colours (0: a fixed endoscope sees each point from one direction).
     Losses (weights):
@@ -66,7 +70,8 @@ class ReconConfig:
         lr_tool_rot (rad), lr_tool_trans (per unit extent).
     Densification (3DGS):
         densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
-        (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians.
+        (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
+        densify_max_growth: one densification step adds at most this fraction of the current count.
     Device:
         device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "gsplat").
     """
@@ -81,14 +86,15 @@ class ReconConfig:
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
 
-    iters: int = 3000
-    coarse_fraction: float = 0.1
+    iters: int = 2000
+    coarse_fraction: float = 0.05
     seed: int = 0
     checkpoint_every: int = 250
     eval_every: int = 0
     time_budget_s: float | None = None
 
-    init_stride: int = 2
+    init_stride: int = 3
+    init_scale: float = 0.45
     init_opacity: float = 0.7
     sh_degree: int = 0
 
@@ -112,13 +118,14 @@ class ReconConfig:
     lr_tool_rot: float = 2e-3
     lr_tool_trans: float = 2e-3
 
-    densify_from: float = 0.05
+    densify_from: float = 0.1
     densify_until: float = 0.6
     densify_every: int = 100
     densify_grad_threshold: float = 2e-4
     percent_dense: float = 0.01
     prune_opacity: float = 0.005
     max_gaussians: int = 60_000
+    densify_max_growth: float = 0.25
 
     device: str = "auto"
     backend: str = "auto"
@@ -136,6 +143,8 @@ class ReconConfig:
             raise DataError(f"coarse_fraction {self.coarse_fraction} must be in [0, 1]")
         if self.init_stride < 1:
             raise DataError(f"init_stride {self.init_stride} must be >= 1")
+        if self.init_scale <= 0:
+            raise DataError(f"init_scale {self.init_scale} must be positive")
         if not 0 < self.init_opacity < 1:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
         if self.time_budget_s is not None and self.time_budget_s <= 0:
@@ -167,10 +176,10 @@ class ReconConfig:
 
 
 def default_config(device: str = "cpu") -> ReconConfig:
-    """Defaults for ``device``: "cpu" (half resolution, 3000 iterations) or "cuda" (full resolution,
+    """Defaults for ``device``: "cpu" (half resolution, 2000 iterations) or "cuda" (full resolution,
     Endo-4DGS-like 1000 coarse + 6000 fine iterations, a larger HexPlane)."""
     if device == "cuda":
-        return ReconConfig(resolution_scale=1.0, iters=7000, coarse_fraction=1 / 7, init_stride=2,
+        return ReconConfig(resolution_scale=1.0, iters=7000, coarse_fraction=1 / 7, init_stride=2, init_scale=0.6,
                            max_gaussians=300_000, device="cuda", checkpoint_every=1000,
                            deformation=DeformationConfig(feature_dim=32, resolution=(64, 64, 64)))
     return ReconConfig(device="cpu")

@@ -10,8 +10,10 @@
   Per-frame translations start from the motion of the mask centroid, in-plane rotations from the change
   of the mask's principal axis.
 
-Every Gaussian gets the object id of its pixel. Spacing: a Gaussian's standard deviation is 0.6 of the
-back-projected grid spacing, so neighbours overlap and the first render has no holes.
+Every Gaussian gets the object id of its pixel. Spacing: a Gaussian's standard deviation is ``scale``
+(default 0.6) times the back-projected grid spacing, so neighbours overlap and the first render has no
+holes. A smaller ``scale`` still covers the image (the 2D footprint reaches ~3 sigma) with fewer
+(pixel, Gaussian) pairs per pixel, which is what the CPU rasteriser's cost grows with.
 """
 
 from __future__ import annotations
@@ -43,11 +45,11 @@ def backproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray) -> n
 
 
 def _points(frame: np.ndarray, depth: np.ndarray, ids: np.ndarray, select: np.ndarray, K: np.ndarray,
-            stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            stride: int, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     v, u = np.nonzero(select)
     z = depth[v, u]
     pts = backproject(u, v, z, K)
-    sigma = 0.6 * stride * z / K[0, 0]
+    sigma = scale * stride * z / K[0, 0]
     return pts, frame[v, u], ids[v, u], sigma
 
 
@@ -81,8 +83,9 @@ class InitResult:
 
 
 def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: int = 0,
-                      tool_depth_factor: float = 0.85) -> InitResult:
-    """Initial tissue and tool Gaussians of a :class:`~endogsim.recon.data.PreparedScene`."""
+                      tool_depth_factor: float = 0.85, scale: float = 0.6) -> InitResult:
+    """Initial tissue and tool Gaussians of a :class:`~endogsim.recon.data.PreparedScene`; ``scale``:
+    standard deviation in units of the grid spacing ``stride``."""
     sc = prep.scene
     T, H, W = sc.num_frames, sc.height, sc.width
     K = sc.K
@@ -95,12 +98,12 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
     # tissue of the first training frame, then what later frames uncover
     f0 = train[0]
     seen = prep.tissue[f0].copy()
-    parts = [_points(sc.frames[f0], depth[f0], ids[f0], grid & prep.tissue[f0] & (depth[f0] > 0), K, stride)]
+    parts = [_points(sc.frames[f0], depth[f0], ids[f0], grid & prep.tissue[f0] & (depth[f0] > 0), K, stride, scale)]
     n_dis = 0
     for t in train[1:]:
         new = grid & prep.tissue[t] & ~seen & (depth[t] > 0)
         if new.any():
-            parts.append(_points(sc.frames[t], depth[t], ids[t], new, K, stride))
+            parts.append(_points(sc.frames[t], depth[t], ids[t], new, K, stride, scale))
             n_dis += int(new.sum())
         seen |= prep.tissue[t]
     cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
@@ -122,7 +125,7 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
         zmap = depth[ref] if prep.depth_metric else depth[ref] * tool_depth_factor
         sel = m & (zmap > 0)
         sub = sel & grid if (sel & grid).sum() >= MIN_TOOL_PIXELS else sel
-        pts, cols, oids, sigma = _points(sc.frames[ref], zmap, ids[ref], sub, K, stride)
+        pts, cols, oids, sigma = _points(sc.frames[ref], zmap, ids[ref], sub, K, stride, scale)
         tools.append(_gaussians(pts, cols, oids, sigma, opacity, sh_degree))
         c = pts.mean(0)
         tool_ids.append(oid)

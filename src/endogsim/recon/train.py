@@ -121,7 +121,7 @@ class Trainer:
     def init_fresh(self) -> None:
         c, prep = self.cfg, self.prep
         torch.manual_seed(c.seed)
-        ini = initial_gaussians(prep, c.init_stride, c.init_opacity, c.sh_degree, c.tool_depth_factor)
+        ini = initial_gaussians(prep, c.init_stride, c.init_opacity, c.sh_degree, c.tool_depth_factor, c.init_scale)
         if len(ini.tissue) == 0:
             raise DataError(f"{prep.scene.source}: no tissue pixel with depth in the training frames")
         lo = ini.tissue.means.min(0).values
@@ -251,8 +251,11 @@ class Trainer:
         it = self.iteration + 1
         lo, hi = int(c.densify_from * c.iters), int(c.densify_until * c.iters)
         if lo < it <= hi and it % c.densify_every == 0:
+            # A bounded growth per step: adding most of the set at once drops the PSNR for a while (the
+            # children start as opaque as their parents) and makes every later iteration slower.
+            cap = min(c.max_gaussians, int(len(self.tissue) * (1 + c.densify_max_growth)))
             info["densify"] = self.tissue.densify_and_prune(
-                c.densify_grad_threshold, c.percent_dense, self.extent, c.prune_opacity, c.max_gaussians, self.gen)
+                c.densify_grad_threshold, c.percent_dense, self.extent, c.prune_opacity, cap, self.gen)
         self.iteration = it
         return info
 
