@@ -27,45 +27,24 @@ import torch
 from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
+from endogsim.io.labels import CHOLECSEG8K_LABELS, CHOLECSEG8K_NON_OBJECTS, CHOLECSEG8K_UNLABELLED_VALUE
+from endogsim.materials.prior import prior_entry
 from endogsim.synth import procedural as proc
 from endogsim.physics import MPMConfig, max_stable_E
 from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface, tool_offsets, tool_truth
 from endogsim.synth.spec import ObjectTruth, load_suite
 
-__all__ = ["build_from_data", "CHOLECSEG_CLASSES", "PRIOR_FALLBACK", "read_first_frame"]
+__all__ = ["build_from_data", "CHOLECSEG_CLASSES", "read_first_frame"]
 
-# CholecSeg8K class id -> (name, prior class, is_tool). 50 (black field-of-view border) is dropped.
-CHOLECSEG_CLASSES = {
-    5: ("liver_ligament", "liver_ligament", False), 11: ("abdominal_wall", "abdominal_wall", False),
-    12: ("fat", "fat", False), 13: ("gastrointestinal_tract", "gastrointestinal_tract", False),
-    21: ("liver", "liver", False), 22: ("gallbladder", "gallbladder", False),
-    23: ("connective_tissue", "connective_tissue", False), 24: ("blood", "blood", False),
-    25: ("cystic_duct", "cystic_duct", False), 31: ("grasper", "grasper", True), 32: ("l_hook", "l_hook", True),
-    33: ("hepatic_vein", "hepatic_vein", False), 255: ("unlabelled", "unknown_tissue", False),
-}
-BACKGROUND_CLASS = 50
+# CholecSeg8K class id -> (name, prior class, is_tool), from the loader's class table (names are the prior
+# classes); the field-of-view border is dropped and 255 (unlabelled pixels) becomes a generic tissue.
+CHOLECSEG_CLASSES = {lab.id: (lab.klass, lab.klass, lab.is_tool) for lab in CHOLECSEG8K_LABELS.values()
+                     if lab.id not in CHOLECSEG8K_NON_OBJECTS}
+CHOLECSEG_CLASSES[CHOLECSEG8K_UNLABELLED_VALUE] = ("unlabelled", "unknown_tissue", False)
 PAPER_SUBSTEPS = 25  # the paper's 25 x 2e-4 s per 5 ms frame
-
-# In-vivo (kPa regime) E (Pa), nu, density (kg/m^3) per class, used only when endogsim.materials (the cited
-# prior table) cannot be imported.
-# Values are mid-range indentation/elastography figures (shared/docs/tissue_mechanics.md); E is further
-# capped so every object stays inside the MPM stability limit at the identification defaults.
-PRIOR_FALLBACK = {
-    "liver": (4000.0, 0.42, 1060.0), "gallbladder": (8000.0, 0.42, 1030.0), "fat": (2000.0, 0.40, 920.0),
-    "abdominal_wall": (6000.0, 0.40, 1050.0), "gastrointestinal_tract": (3000.0, 0.42, 1040.0),
-    "stomach": (1500.0, 0.42, 1040.0), "connective_tissue": (5000.0, 0.40, 1050.0), "blood": (1000.0, 0.45, 1060.0),
-    "cystic_duct": (6000.0, 0.40, 1050.0), "hepatic_vein": (5000.0, 0.42, 1050.0),
-    "unknown_tissue": (3000.0, 0.40, 1050.0), "instrument": (2.0e11, 0.30, 7850.0), "grasper": (2.0e11, 0.30, 7850.0),
-}
-
 
 def _prior(klass: str, is_tool: bool = False) -> tuple[float, float, float, str]:
     """(E Pa, nu, density kg/m^3, where from) of a class, in the in-vivo regime."""
-    try:
-        from endogsim.materials.prior import prior_entry
-    except ImportError:
-        E, nu, rho = PRIOR_FALLBACK.get(klass, PRIOR_FALLBACK["instrument" if is_tool else "unknown_tissue"])
-        return E, nu, rho, "synth fallback table"
     key, e = prior_entry(klass, is_tool)
     return float(e["in_vivo"]["E"]), float(e["nu"]), float(e["density"]), f"prior table ({key})"
 
@@ -175,7 +154,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     T = int(frames if frames is not None else 12)
     if T < 2:
         raise DataError(f"--frames must be at least 2, got {T}")
-    keep = classes != BACKGROUND_CLASS
+    keep = ~np.isin(classes, list(CHOLECSEG8K_NON_OBJECTS))
     present = [c for c in np.unique(classes[keep]).tolist() if c in labels]
     unknown = set(np.unique(classes[keep]).tolist()) - set(labels)
     if unknown:
