@@ -17,7 +17,6 @@ and the renderer's (Gaussians, camera, per-Gaussian binding to particles). Units
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from endogsim.physics import (
     Scenario,
     SimBox,
     bind_gaussians,
+    capsule_collider_points,
     particles_from_gaussians,
 )
 from endogsim.synth.spec import SceneTruth, load_scene_truth
@@ -91,44 +91,6 @@ class IdentifyProblem:
         scene built from a reconstruction, whose scene.json leaves them null)."""
         deformable = [o for o in self.truth.objects if not o.rigid]
         return bool(deformable) and all(o.E is not None and o.nu is not None for o in deformable)
-
-
-def capsule_collider_points(tip, end, radius: float, dx: float) -> tuple[np.ndarray, float]:
-    """Points filling a capsule (segment tip-end, ``radius`` metres) for a point-based kinematic collider.
-
-    The simulator marks grid nodes within a small contact radius of each collider point, so a capsule is
-    sampled on a lattice of spacing dx / 2 inside the capsule shrunk by that contact radius
-    (0.45 dx >= half the lattice diagonal), plus the nearby lattice points projected onto the shrunk
-    surface: the union of the little spheres then covers the capsule and stays inside it.
-
-    Returns:
-        points [Pc, 3] (metres, world, frame 0) and the contact radius (metres).
-    """
-    a, b = np.asarray(tip, float), np.asarray(end, float)
-    rho = 0.45 * dx
-    inner = max(radius - rho, 0.0)
-    h = dx / 2
-    lo = np.minimum(a, b) - inner
-    hi = np.maximum(a, b) + inner
-    axes = [np.arange(lo[i], hi[i] + h / 2, h) for i in range(3)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    ab = b - a
-    t = np.clip(((g - a) @ ab) / max(ab @ ab, 1e-18), 0, 1)
-    d = np.linalg.norm(g - (a + t[:, None] * ab), axis=1)
-    # Lattice points just outside the shrunk capsule are projected onto its surface: projection onto a
-    # convex set is non-expansive, so every point of the shrunk capsule stays within half a lattice
-    # diagonal (< rho) of some collider point, and no contact sphere pokes out of the capsule.
-    keep = d <= inner + 0.5 * math.sqrt(3.0) * h + 1e-12
-    g, t, d = g[keep], t[keep], d[keep]
-    axis_pt = a + t[:, None] * ab
-    outside = d > inner
-    g[outside] = axis_pt[outside] + (g[outside] - axis_pt[outside]) * (inner / d[outside])[:, None]
-    pts = np.unique(np.round(g, 12), axis=0) if inner > 0 else g[:0]
-    if len(pts) == 0:  # a capsule thinner than the lattice: its axis alone
-        n = max(2, int(math.ceil(np.linalg.norm(ab) / h)) + 1)
-        pts = a + np.linspace(0, 1, n)[:, None] * ab
-        rho = max(radius, rho)
-    return pts, float(rho)
 
 
 def _read_rgb(path: Path) -> np.ndarray:

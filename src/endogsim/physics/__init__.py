@@ -35,6 +35,7 @@ Public API
   [T,4,4], or positions [T,Pc,3]; kinematic, sticky contact).
 - :class:`Particles` (x [P,3] m, volume [P] m^3, object_ids [P], v [P,3] m/s or None);
   ``Particles.box(lo, hi, spacing, object_id)``; :func:`particles_from_gaussians`.
+- :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`.
 - :func:`simulate` (particles, E [M] Pa, nu [M], density [M] kg/m^3, scenario, config, num_frames, v0=None)
   -> :class:`SimResult` (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
 - :func:`mpm_rollout` (particles, log10_E [M], nu [M], density [M], scenario, config, num_frames,
@@ -54,6 +55,7 @@ from endogsim.physics.particles import (
     GaussianBinding,
     Particles,
     bind_gaussians,
+    capsule_collider_points,
     drive_gaussians,
     extrude_along_rays,
     particles_from_gaussians,
@@ -72,7 +74,7 @@ from endogsim.physics.units import SimBox
 
 __all__ = [
     "Anchor", "ExternalForce", "GaussianBinding", "MPMConfig", "Particles", "RigidCollider", "Scenario",
-    "SimBox", "SimResult", "bind_gaussians", "drive_gaussians", "extrude_along_rays", "max_stable_E",
+    "SimBox", "SimResult", "bind_gaussians", "capsule_collider_points", "drive_gaussians", "extrude_along_rays", "max_stable_E",
     "mpm_rollout", "p_wave_speed", "particles_from_gaussians", "plan_substeps", "polar_rotation",
     "rotate_sh", "simulate",
 ]

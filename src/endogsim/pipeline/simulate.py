@@ -268,7 +268,7 @@ def build_interaction(problem, inter: Interaction):
     Returns:
         (new problem, info dict with the resolved world points in metres).
     """
-    from endogsim.identify.problem import capsule_collider_points
+    from endogsim.physics import capsule_collider_points
     from endogsim.physics import ExternalForce, RigidCollider
     from endogsim.synth.scenes import tool_offsets
 

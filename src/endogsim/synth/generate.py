@@ -67,7 +67,7 @@ def ground_truth_problem(b: BuiltScene) -> tuple[Particles, torch.Tensor, torch.
     Returns particles, per-object-id E [M] (Pa), nu [M], density [M] (kg/m^3), the scenario (sim box,
     gravity, anchored particles, capsule tools as point colliders) and the ``ground_truth`` numerics.
     """
-    from endogsim.identify.problem import capsule_collider_points  # one capsule covering for GT and identification
+    from endogsim.physics import capsule_collider_points  # the same covering as identification
 
     gt = b.ground_truth
     particles = Particles(torch.as_tensor(b.particles, dtype=torch.float32),
