@@ -88,10 +88,8 @@ def test_true_materials_reproduce_the_ground_truth_flow(problem):
 
 
 def test_loss_is_least_at_the_true_material(problem):
-    """The ground truth (grid 64, 100 substeps) is finer than identification (grid 50, 50 substeps), yet the
-    loss is least at the true E and nu: softer, stiffer and more incompressible materials (the prior's
-    direction) all score worse. (At 25 identification substeps it was not: the loss favoured a stiffer,
-    more incompressible material.)"""
+    """Through noisy renders and the estimated (DIS) flow, the loss is least at the true E and nu: softer,
+    stiffer and more incompressible materials (the prior's direction) all score worse."""
     from endogsim.identify.optimize import evaluate_loss, prepare_observations
 
     cfg = IdentifyConfig()

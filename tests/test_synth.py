@@ -152,9 +152,9 @@ def test_every_suite_scene_builds_within_stability_limits(name):
     assert inside.all()
     assert b.anchored.any() and not b.anchored.all()
     assert len(b.tools) == 1 and b.tools[0].matrices().shape == (4, 4, 4)
-    # The ground truth is a finer discretisation than identification (the benchmark must not reward
-    # matching one discretisation).
-    assert b.ground_truth.grid > b.identification.grid and b.ground_truth.substeps > b.identification.substeps
+    # The ground truth is at least as fine as identification (by default the same, as in the paper: at about
+    # one particle per cell a finer ground truth measures the simulator's discretisation error).
+    assert b.ground_truth.grid >= b.identification.grid and b.ground_truth.substeps >= b.identification.substeps
 
 
 def test_suite_materials_lie_in_the_priors_in_vivo_range():

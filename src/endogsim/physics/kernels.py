@@ -169,6 +169,7 @@ def p2g(
     F: wp.array(dtype=wp.mat33),
     vol: wp.array(dtype=float),
     obj: wp.array(dtype=wp.int32),
+    pinned: wp.array(dtype=wp.int32),
     E_obj: wp.array(dtype=float),
     nu_obj: wp.array(dtype=float),
     rho_obj: wp.array(dtype=float),
@@ -184,7 +185,13 @@ def p2g(
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
-    """Particle to grid: APIC momentum, mass and the elastic force (MLS-MPM)."""
+    """Particle to grid: APIC momentum, mass and the elastic force (MLS-MPM).
+
+    A pinned (anchored) particle passes on its elastic force but neither mass nor momentum: its inertia
+    belongs to the fixed anatomy. Were its mass (at rest) averaged into a node shared with free particles,
+    the node would lose that fraction of its momentum every substep, a damping per substep, not per second,
+    that makes the motion shrink with dt.
+    """
     p = wp.tid()
     o = obj[p]
     E = E_obj[o]
@@ -192,6 +199,8 @@ def p2g(
     mu = E / (2.0 * (1.0 + nu))
     lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     mass = rho_obj[o] * vol[p]
+    if pinned[p] != 0:
+        mass = 0.0
 
     xp = x[p]
     base = stencil_base(xp, inv_dx, n)
@@ -399,3 +408,41 @@ def node_boxes_to_bc(
             if bc_kind[i, j, k] != BC_STICKY:
                 bc_kind[i, j, k] = box_kind[b]
                 bc_normal[i, j, k] = box_normal[b]
+
+
+@wp.kernel
+def anchor_weights_to_grid(
+    x: wp.array(dtype=wp.vec3),
+    pinned: wp.array(dtype=wp.int32),
+    inv_dx: float,
+    n: int,
+    w_pinned: wp.array3d(dtype=float),
+    w_free: wp.array3d(dtype=float),
+):
+    """Splat each particle's B-spline weights onto the grid, pinned and free particles separately."""
+    p = wp.tid()
+    xp = x[p]
+    base = stencil_base(xp, inv_dx, n)
+    fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    W = bspline_weights(fx)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = W[i, 0] * W[j, 1] * W[k, 2]
+                if pinned[p] != 0:
+                    wp.atomic_add(w_pinned, base[0] + i, base[1] + j, base[2] + k, w)
+                else:
+                    wp.atomic_add(w_free, base[0] + i, base[1] + j, base[2] + k, w)
+
+
+@wp.kernel
+def anchored_nodes_to_bc(
+    w_pinned: wp.array3d(dtype=float),
+    w_free: wp.array3d(dtype=float),
+    bc_kind: wp.array3d(dtype=wp.int32),
+):
+    """Nodes that pinned particles dominate at rest hold still (sticky), like the anchored tissue itself."""
+    i, j, k = wp.tid()
+    wpin = w_pinned[i, j, k]
+    if wpin > 0.0 and wpin >= w_free[i, j, k]:
+        bc_kind[i, j, k] = BC_STICKY

@@ -144,6 +144,14 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
 
     if ((x < pad) | (x > L - pad)).any():
         raise SimulationError("particles lie outside the sim box (or within 2 cells of its walls): enlarge the box")
+    # Anchored particles pass on their elastic force but not their mass or momentum (their inertia is the
+    # fixed anatomy's), and the nodes they dominate at rest hold still.
+    mass_free = torch.where(anchored, torch.zeros_like(mass), mass)
+    base0, w0, _ = _weights(x * inv_dx)
+    idx0 = _flat_index(base0, n1).reshape(-1)
+    w_pin = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx0, (w0 * anchored[:, None]).reshape(-1))
+    w_free = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx0, (w0 * ~anchored[:, None]).reshape(-1))
+    held = (w_pin > 0) & (w_pin >= w_free)
     xs, Fs = [x.clone()], [F.clone()]
     decay = math.exp(-p.damping * dt)
     for frame in range(1, p.frames):
@@ -155,9 +163,9 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             R = polar_rotation(F)
             stress = 2 * mu[:, None, None] * (F - R) @ F.mT + (lam * (J - 1) * J)[:, None, None] * torch.eye(3, dtype=dtype)
             stress = -dt * 4 * inv_dx * inv_dx * vol[:, None, None] * stress
-            affine = stress + mass[:, None, None] * C
-            mom = mass[:, None, None] * v[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)
-            gm = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w * mass[:, None]).reshape(-1))
+            affine = stress + mass_free[:, None, None] * C
+            mom = mass_free[:, None, None] * v[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)
+            gm = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w * mass_free[:, None]).reshape(-1))
             gmv = torch.zeros(n1 ** 3, 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w[..., None] * mom).reshape(-1, 3))
             has = gm > 1e-12
             gv = torch.zeros_like(gmv)
@@ -173,15 +181,15 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
                 d = torch.linalg.norm(nodes - (a + shift + tpar[:, None] * ab), dim=1)
                 inside = d < r
                 gv[inside] = vel
+            gv[held] = 0
             gv[wall] = 0
             v, C = _g2p(gv, n1, inv_dx, (base, w, dpos))
             x = x + dt * v
             F = (torch.eye(3, dtype=dtype) + dt * C) @ F
-            # Anchors: held at rest (Dirichlet boundary condition on particles).
+            # Anchors: held at rest (Dirichlet boundary condition on particles); F still follows the grid.
             v[anchored] = 0
             C[anchored] = 0
             x[anchored] = x0[anchored]
-            F[anchored] = torch.eye(3, dtype=dtype)
             if not torch.isfinite(x).all():
                 raise SimulationError(f"MPM diverged (NaN/inf) at frame {frame}: lower dt or E")
             if ((x < pad) | (x > L - pad)).any():

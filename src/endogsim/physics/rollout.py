@@ -299,6 +299,14 @@ class _Engine:
                 wp.array([b[2] for b in boxes], dtype=wp.int32, device=dev),
                 wp.array([b[3] for b in boxes], dtype=wp.vec3, device=dev),
                 len(boxes), 1.0 / self.inv_dx, self.bc_kind, self.bc_normal])
+        if pinned.any():
+            # Pinned particles carry no mass (see kernels.p2g); the nodes they dominate at rest are held.
+            x0_sim = wp.from_numpy(self.box.to_sim(x0_world).float().numpy(), dtype=wp.vec3, device=dev)
+            w_pinned = wp.zeros((self.n,) * 3, dtype=float, device=dev)
+            w_free = wp.zeros((self.n,) * 3, dtype=float, device=dev)
+            wp.launch(K.anchor_weights_to_grid, dim=self.P, device=dev,
+                      inputs=[x0_sim, self.pinned, self.inv_dx, self.n, w_pinned, w_free])
+            wp.launch(K.anchored_nodes_to_bc, dim=(self.n,) * 3, device=dev, inputs=[w_pinned, w_free, self.bc_kind])
 
         # External forces: one force per particle (the last one listed wins where regions overlap).
         region = np.full(self.P, -1, dtype=np.int32)
@@ -362,7 +370,7 @@ class _Engine:
                     frames[frame], frames[frame + 1], alpha, 1.0 / self.cfg.frame_dt, radius, self.inv_dx, n,
                     grid.col_w, grid.col_mv])
         wp.launch(K.p2g, dim=self.P, device=dev, inputs=[
-            s_in.x, s_in.v, s_in.C, s_in.F, self.vol, self.obj, E, nu, rho,
+            s_in.x, s_in.v, s_in.C, s_in.F, self.vol, self.obj, self.pinned, E, nu, rho,
             self.force_region, self.force_acc, self.force_t0, self.force_t1,
             t, dt, self.inv_dx, n, self.model, grid.m, grid.mv])
         lo, hi = self.active_block(s_in.x)

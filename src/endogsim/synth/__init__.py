@@ -4,7 +4,8 @@
 * :func:`load_scene_truth`: read its ``scene.json`` (objects, scenario, camera, seed) into typed records.
 * :mod:`endogsim.synth.procedural`: reusable geometry / texture builders (tissue surfaces, tools).
 * Ground-truth videos are simulated by :mod:`endogsim.physics` (the Warp MLS-MPM identification also uses)
-  at a finer discretisation than identification's; both are recorded in ``scene.json``.
+  at the suite's ``ground_truth`` discretisation (by default identification's, as in the paper; it can be
+  made finer); both are recorded in ``scene.json``.
 * :func:`dis_epe_table`: EPE of an optical-flow estimator against the ground-truth flow of scene folders.
 """
 

@@ -13,9 +13,10 @@ Folder written by :func:`synthesize` (T frames, H x W pixels, names as in EndoNe
   scene.json                        objects, scenario, camera, seed (see endogsim.synth.spec)
 
 The ground truth is simulated by the Warp MLS-MPM of :mod:`endogsim.physics` -- the same simulator
-identification differentiates -- at the scene's finer ``ground_truth`` discretisation (finer grid, more
-substeps than ``identification``; both in scene.json), so the benchmark does not reward matching one
-discretisation. Gaussians follow the particles by :func:`endogsim.physics.bind_gaussians` /
+identification differentiates -- at the scene's ``ground_truth`` discretisation (both it and
+``identification`` are in scene.json). The suite's default is identification's own, as in the paper; a finer
+one (``gt_grid``, ``gt_refine``) is possible, but at about one particle per cell it mostly measures the
+simulator's discretisation error (see the suite's description). Gaussians follow the particles by :func:`endogsim.physics.bind_gaussians` /
 :func:`endogsim.physics.drive_gaussians`, and tools move rigidly with their per-frame transforms.
 
 The ground-truth flow is the Gaussian flow (:mod:`endogsim.gaussians.flow`) of the simulated Gaussians,

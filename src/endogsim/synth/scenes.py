@@ -197,10 +197,9 @@ def ground_truth_and_identification(spec: dict[str, Any], objects: list[ObjectTr
     """The two discretisations of a scene from the suite's numerics keys.
 
     Identification: ``ident_grid`` cells, ``frame_dt / ident_dt`` substeps (the suite: 50^3 as the paper, but
-    50 x 1e-4 s, not its 25 x 2e-4 s: at these particle densities the simulator's motion depends on dt at
-    first order, and at 25 substeps the loss minimum moves to a stiffer, more incompressible material than the
-    ground truth's; see the suite's description).
-    Ground truth: the finer ``gt_grid`` and ``gt_refine`` times the substeps, raised further where the CFL
+    50 x 1e-4 s, not its 25 x 2e-4 s: explicit MPM is first order in dt, and next to sticky boundaries the
+    motion changes enough per halving of dt to move the loss minimum; see the suite's description).
+    Ground truth: ``gt_grid`` and ``gt_refine`` times the substeps (default: identification's), raised where the CFL
     number would pass ``gt_cfl``.
     """
     frame_dt = float(spec["frame_dt"])
