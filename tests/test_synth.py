@@ -250,3 +250,15 @@ def test_loaded_depth_is_the_ground_truth_depth_in_metres(tiny):
     seen = (r.alpha.numpy() > 0.5) & (scene.depth[0] > 0)
     assert seen.mean() > 0.5
     assert np.abs(scene.depth[0][seen] - ref[seen]).max() <= 0.5 / truth.depth_scale + 1e-6
+
+
+def test_cached_scenes_from_an_older_generator_are_synthesized_again(tmp_path):
+    from endogsim.bench.identify import ensure_scene
+    from endogsim.synth.spec import GENERATOR_REVISION
+
+    folder = ensure_scene("tiny", tmp_path, frames=3)
+    meta = json.loads((folder / "scene.json").read_text())
+    assert meta["generator"] == GENERATOR_REVISION
+    meta["generator"] = GENERATOR_REVISION - 1
+    (folder / "scene.json").write_text(json.dumps(meta))
+    assert load_scene_truth(ensure_scene("tiny", tmp_path, frames=3)).generator == GENERATOR_REVISION

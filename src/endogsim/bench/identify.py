@@ -32,11 +32,17 @@ def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: 
     Args:
         frames: number of frames (default: the suite's); scale: image-size factor (default 1).
     """
-    from endogsim.synth import synthesize
+    from endogsim.errors import DataError
+    from endogsim.synth import load_scene_truth, synthesize
+    from endogsim.synth.spec import GENERATOR_REVISION
 
     tag = name + ("" if frames is None else f"_f{frames}") + ("" if scale in (None, 1.0) else f"_s{scale:g}")
     folder = scenes_dir / tag
-    if not (folder / "scene.json").is_file():
+    try:
+        fresh = load_scene_truth(folder).generator == GENERATOR_REVISION
+    except DataError:  # missing or unreadable
+        fresh = False
+    if not fresh:  # a scene from an older generator has another ground truth
         synthesize(name, folder, seed=0, frames=frames, scale=scale)
     return folder
 

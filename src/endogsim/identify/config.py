@@ -68,7 +68,7 @@ class IdentifyConfig:
     max_grad_norm: float = 10.0
     time_budget: float | None = 480.0
     tol: float = 1e-3
-    patience: int = 6
+    patience: int = 10
     global_material: bool = False
     nu_bounds: tuple[float, float] = (0.0, 0.49)
     E_min: float = 50.0

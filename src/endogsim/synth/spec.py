@@ -22,6 +22,9 @@ __all__ = [
 ]
 
 SCENE_JSON_VERSION = 1
+# Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
+# with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
+GENERATOR_REVISION = 2
 
 
 @dataclass
@@ -109,6 +112,7 @@ class SceneTruth:
     files: dict[str, str] = field(default_factory=dict)
     source: str = "procedural"
     version: int = SCENE_JSON_VERSION
+    generator: int = GENERATOR_REVISION
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -145,6 +149,7 @@ def load_scene_truth(path: str | Path) -> SceneTruth:
             name=d["name"], seed=d["seed"], frames=d["frames"], objects=objects, scenario=ScenarioTruth(**sc),
             camera=CameraTruth(**d["camera"]), depth_scale=d["depth_scale"], files=d.get("files", {}),
             source=d.get("source", "procedural"), version=d.get("version", SCENE_JSON_VERSION),
+            generator=d.get("generator", 1),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{p}: malformed scene.json ({exc})") from exc
