@@ -21,7 +21,7 @@ from endogsim.identify.problem import IdentifyProblem
 from endogsim.materials.field import MaterialField, MaterialParams
 from endogsim.physics import drive_gaussians, mpm_rollout
 
-__all__ = ["Rendered", "material_tables", "simulate_materials", "render_sequence"]
+__all__ = ["Rendered", "material_tables", "simulate_materials", "frame_gaussians", "render_sequence"]
 
 
 @dataclass
@@ -71,7 +71,7 @@ def simulate_materials(problem: IdentifyProblem, log10_E: torch.Tensor, nu: torc
                        grad_mode=grad_mode)
 
 
-def _frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
+def frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
     """Means [N, 3] and covariances [N, 3, 3] of every Gaussian at frame t (float32, differentiable)."""
     g = problem.gaussians
     means, covs, _ = drive_gaussians(g, problem.binding, positions[t].float(), F[t].float(), rotate_colors=False)
@@ -108,7 +108,7 @@ def render_sequence(problem: IdentifyProblem, positions: torch.Tensor, F: torch.
     opac = g.opacities.float().detach()
     colors = g.colors_dc.clamp(0, 1).float().detach() if g.sh_degree == 0 else g.sh.float().detach()
     needed = sorted(set(frames) | {t + 1 for t in frames if t + 1 < T})
-    states = {t: _frame_gaussians(problem, positions, F, cov0, t) for t in needed}
+    states = {t: frame_gaussians(problem, positions, F, cov0, t) for t in needed}
     rgbs, flows, alphas = [], [], []
     for t in frames:
         m, c = states[t]

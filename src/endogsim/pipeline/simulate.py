@@ -416,7 +416,7 @@ def simulate_interaction(
     """
     from endogsim.cli.common import write_json_atomic
     from endogsim.gaussians.ply import write_ply
-    from endogsim.identify.forward import _frame_gaussians, material_tables, render_sequence
+    from endogsim.identify.forward import frame_gaussians, material_tables, render_sequence
     from endogsim.identify.problem import load_problem
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.physics import simulate
@@ -457,7 +457,7 @@ def simulate_interaction(
         keep = ~torch.isin(g.object_ids, torch.tensor(info["hidden_tools"], dtype=torch.int64))
         with torch.no_grad():
             for t in range(T):
-                means, covs = _frame_gaussians(problem, res.positions, res.F, cov0, t)
+                means, covs = frame_gaussians(problem, res.positions, res.F, cov0, t)
                 log_s, quats = covariance_to_scale_rot(covs)
                 gt = g.with_(means=means.to(g.means.dtype), log_scales=log_s.to(g.means.dtype),
                              quats=quats.to(g.means.dtype)).subset(keep)
