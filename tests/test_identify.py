@@ -237,3 +237,22 @@ def test_recovers_E_within_10_percent_from_3x_off(problem, tmp_path):
     res = identify(problem, field_from_truth(problem, 3.0), cfg, run_dir=tmp_path / "run")
     E_true = next(o.E for o in problem.truth.objects if not o.rigid)
     assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)
+
+
+def test_shared_scale_adam_is_adam_for_one_object_and_steps_weakly_observed_objects_less():
+    from endogsim.identify.optimize import SharedScaleAdam
+
+    a, b = torch.tensor([0.3], requires_grad=True), torch.tensor([0.3], requires_grad=True)
+    ours, adam = SharedScaleAdam([a], lr=0.1), torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.99))
+    for k in range(5):
+        for x, opt in ((a, ours), (b, adam)):
+            opt.zero_grad()
+            ((x - 2) ** 2 * torch.sin(x + k)).sum().backward()
+            opt.step()
+    assert torch.allclose(a, b, atol=1e-6)
+    # Two objects, gradients 1 : 0.2: the first steps by lr, the second by a fifth of it (Adam: both by lr).
+    x = torch.zeros(2, requires_grad=True)
+    opt = SharedScaleAdam([x], lr=0.1)
+    (x * torch.tensor([1.0, 0.2])).sum().backward()
+    opt.step()
+    assert torch.allclose(x.detach(), torch.tensor([-0.1, -0.02]), atol=1e-6)

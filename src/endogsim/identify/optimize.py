@@ -1,4 +1,4 @@
-"""The identification loop: Adam on log10 E and bounded nu of the deformable objects.
+"""The identification loop: Adam (one scale per parameter tensor) on log10 E and bounded nu of the deformable objects.
 
 One iteration: simulate from the frame-0 state with the current materials (differentiable MLS-MPM,
 ``config.grad_mode``), render every frame and its Gaussian flow, evaluate the loss against the observed
@@ -37,7 +37,40 @@ from endogsim.physics import max_stable_E
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_CKPT_VERSION = 1
+_CKPT_VERSION = 2
+
+
+class SharedScaleAdam(torch.optim.Optimizer):
+    """Adam whose second moment is shared by the entries of each parameter tensor (it tracks max g^2).
+
+    Per-entry Adam steps every object by about ``lr`` whatever its gradient, so an object that barely moves
+    in the video (gradient 5x smaller than its neighbour's, mostly noise) wanders as far as a well-observed
+    one. With one scale per tensor (log10 E of all objects; raw nu of all objects) the best-observed object
+    steps by about ``lr`` and the others in proportion to their gradients. With one object this is Adam.
+    """
+
+    def __init__(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-8):
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["step"] = torch.zeros(())
+                    st["m"] = torch.zeros_like(p)
+                    st["v"] = torch.zeros((), dtype=p.dtype)
+                st["step"] += 1
+                n = float(st["step"])
+                st["m"].mul_(b1).add_(p.grad, alpha=1 - b1)
+                st["v"].mul_(b2).add_(p.grad.square().max(), alpha=1 - b2)
+                m_hat = st["m"] / (1 - b1 ** n)
+                v_hat = st["v"] / (1 - b2 ** n)
+                p.add_(m_hat / (v_hat.sqrt() + group["eps"]), alpha=-group["lr"])
 
 
 @dataclass
@@ -212,7 +245,7 @@ def identify(
     groups = [{"params": [params.log10_E], "lr_scale": 1.0}]
     if cfg.optimize_nu:
         groups.append({"params": [params.nu_raw], "lr_scale": cfg.lr_nu / cfg.lr})
-    opt = torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99))
+    opt = SharedScaleAdam(groups, lr=cfg.lr, betas=(0.9, 0.99))
     sig = _signature(problem, init_field, cfg)
 
     start, history, best, seconds, stale = 0, [], None, 0.0, 0
