@@ -24,6 +24,7 @@ import typer
 from endogsim.cli.common import user_errors
 
 ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
+SCENES_CACHE = Path.home() / ".cache" / "endogsim" / "bench_scenes"  # default of every bench's --scenes-dir
 
 
 def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: float | None = None) -> Path:
@@ -148,7 +149,7 @@ def register(bench_app: typer.Typer) -> None:
         frames: Optional[int] = typer.Option(None, "--frames", help="Identify from the first N frames only."),
         scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated scenes for the tables."),
         tables: Optional[str] = typer.Option(None, "--tables", help="Comma-separated subset of init,field,loss,grad."),
-        scenes_dir: Path = typer.Option(Path.home() / ".cache" / "endogsim" / "bench_scenes", "--scenes-dir",
+        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
                                         help="Where benchmark scenes are synthesized (reused)."),
         work_dir: Path = typer.Option(Path("bench_identify_runs"), "--work-dir", help="Run folders of the ablations."),
     ) -> None:

@@ -26,6 +26,7 @@ from typing import Optional
 
 import typer
 
+from endogsim.bench.identify import SCENES_CACHE
 from endogsim.cli.common import user_errors
 from endogsim.errors import EndoGSimError
 
@@ -132,7 +133,7 @@ def _ray_map(kwargs_list: list[dict], address: str | None, log) -> list[dict]:
             ray.shutdown()
 
 
-def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = Path.home() / ".cache" / "endogsim" / "bench_scenes",
+def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = SCENES_CACHE,
               work_dir: str | os.PathLike = "bench_suite_runs", iters: int | None = None, quick: bool = False,
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, log=print) -> dict:
@@ -234,7 +235,7 @@ def register(bench_app: typer.Typer) -> None:
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
         fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
         threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
-        scenes_dir: Path = typer.Option(Path.home() / ".cache" / "endogsim" / "bench_scenes", "--scenes-dir",
+        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
                                         help="Where scenes are synthesized (reused)."),
         work_dir: Path = typer.Option(Path("bench_suite_runs"), "--work-dir", help="Run folders."),
     ) -> None:

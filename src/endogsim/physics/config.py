@@ -82,7 +82,8 @@ class Anchor:
 
     Kinds:
       - "fixed": particles that start in the box (or are in ``particle_mask``) are held at their initial
-        position; grid nodes in the box get v = 0.
+        position and carry no mass (their inertia is the fixed anatomy's); grid nodes in the box, and the
+        nodes those particles dominate at rest, get v = 0.
       - "sticky": grid nodes in the box get v = 0 (particles there stop, but are not pinned exactly).
       - "slip": grid nodes in the box lose the velocity component along ``normal`` (a frictionless support).
 
