@@ -10,7 +10,7 @@ from endogsim.errors import DataError, ModelError
 from endogsim.io.labels import endonerf_labels
 from endogsim.io.scene import Scene
 from endogsim.priors.depth import depth_anything_depth, estimate_depth, fallback_depth, pi3_depth
-from endogsim.priors.segmentation import grey_tool_mask, sam2_segmentation, segment_scene
+from endogsim.priors.segmentation import GreyToolConfig, grey_tool_mask, sam2_segmentation, segment_scene
 
 
 def _scene(frames, depth=None, masks=None):
@@ -48,6 +48,23 @@ def test_fallback_tool_segmentation_finds_grey_tool():
     assert (m & ~tool).sum() < 0.25 * tool.sum()  # only the dilated border outside the tool
     m8 = grey_tool_mask((img * 255).astype(np.uint8))
     assert (m8 == m).mean() > 0.99
+
+
+def test_fallback_tool_mask_grows_into_reflective_metal_next_to_the_tool():
+    """A dark reddish jaw (metal mirroring tissue) attached to the grey shaft joins the tool mask; the
+    same colour far from any tool stays tissue."""
+    img, tool = _tissue_with_grey_tool()
+    jaw = np.zeros(tool.shape, np.uint8)
+    cv2.circle(jaw, (68, 62), 5, 1, -1)
+    far = np.zeros(tool.shape, np.uint8)
+    cv2.circle(far, (20, 80), 5, 1, -1)
+    for region in (jaw, far):
+        img[region.astype(bool)] = (0.35, 0.2, 0.22)  # saturated, magenta-red, darker than the tissue
+    m = grey_tool_mask(img)
+    assert m[jaw.astype(bool)].mean() > 0.9
+    assert not m[far.astype(bool)].any()
+    without = grey_tool_mask(img, GreyToolConfig(grow_frac=0.0))
+    assert without[jaw.astype(bool)].mean() < 0.5
 
 
 def test_segment_scene_fallback_warns_and_labels():

@@ -32,6 +32,9 @@ def register(app: typer.Typer) -> None:
         seg_method: Optional[str] = typer.Option(None, "--seg-method", help="auto, dataset, sam2 or fallback."),
         seg_checkpoint: Optional[str] = typer.Option(None, "--seg-checkpoint", help="Local SAM 2 checkpoint (.pt)."),
         seg_config: Optional[str] = typer.Option(None, "--seg-config", help="sam2 model config of the checkpoint."),
+        camera_motion: Optional[str] = typer.Option(None, "--camera-motion",
+                                                    help="auto, on or off: learn a pose per frame for a moving "
+                                                         "endoscope (auto: when the data has neither poses nor depth)."),
         fresh: bool = typer.Option(False, "--fresh", help="Ignore an existing checkpoint in --out."),
     ) -> None:
         """Reconstruct deformable tissue + rigid tools as Gaussians; write PLY, deformation, trajectories,
@@ -46,7 +49,8 @@ def register(app: typer.Typer) -> None:
         cfg = load_config(config, defaults_for=dev, resolution_scale=resolution_scale, iters=iters, device=dev,
                           time_budget_s=time_budget,
                           max_frames=max_frames, depth_method=depth_method, depth_weights=depth_weights,
-                          seg_method=seg_method, seg_checkpoint=seg_checkpoint, seg_config=seg_config)
+                          seg_method=seg_method, seg_checkpoint=seg_checkpoint, seg_config=seg_config,
+                          camera_motion=camera_motion)
         with progress() as bar:
             task = bar.add_task("reconstruct", total=cfg.iters)
 
@@ -61,5 +65,7 @@ def register(app: typer.Typer) -> None:
                      ("SSIM masked", m["ssim_masked"]), ("SSIM EndoNeRF protocol", m["ssim_endonerf"]),
                      ("training seconds", m["training_seconds"]), ("iterations", m["iterations"]),
                      ("Gaussians", m["num_gaussians"]),
-                     ("depth prior", m["depth_source"]), ("segmentation", m["segmentation_source"])])
+                     ("depth prior", m["depth_source"]), ("segmentation", m["segmentation_source"]),
+                     ("camera", "moving (learnt poses)" if m["camera_motion"] else "fixed"),
+                     ("tissue share of test pixels", m["tissue_pixel_fraction"])])
         console.print(f"wrote {out}")

@@ -10,8 +10,9 @@ Methods:
 * ``"fallback"``: offline tool detection by colour. Surgical instruments (da Vinci shafts, laparoscopic
   graspers and hooks) are grey or metallic: low saturation, mid-to-high value, unlike tissue (red, pink,
   yellow, all saturated). :func:`grey_tool_mask` thresholds HSV, drops small specular highlights with a
-  morphological opening and keeps connected components above a minimum area. Crude (white fat, glare and
-  smoke are grey too): a warning says so.
+  morphological opening, keeps connected components above a minimum area, then grows them (hysteresis)
+  into adjacent darker or bluer pixels, since metal mirrors the reddish tissue around it. Crude (white fat,
+  glare and smoke are grey too): a warning says so.
 * ``"auto"``: dataset masks when present, else the fallback.
 
 Every object gets a stable integer id and a name; fallback/SAM 2 tables use id 0 ``tissue`` and tool ids
@@ -69,6 +70,12 @@ class GreyToolConfig:
         open_frac: opening kernel size as a fraction of the image width (removes glints, thin vessels).
         close_frac: closing kernel size, same units (fills tool texture, text on the shaft).
         min_area_frac: components smaller than this fraction of the image are dropped.
+        grow_frac: hysteresis: the detected tools then grow, by at most this fraction of the width, into
+            connected pixels that pass a weaker test (metal mirrors the tissue around it, so jaws and
+            shafts are often reddish, only darker or bluer than tissue of the same hue); 0 turns it off.
+        weak_saturation, weak_value, weak_cool_value: the weaker test: saturation below
+            ``weak_saturation``, or value below ``weak_value``, or a hue in ``weak_cool_hue_deg`` with
+            value below ``weak_cool_value``.
         dilate_frac: the final mask is grown by this fraction of the width, so tool borders (dark
             edges, motion blur, shadows at the contact) stay out of the tissue loss.
     """
@@ -80,6 +87,11 @@ class GreyToolConfig:
     open_frac: float = 0.012
     close_frac: float = 0.02
     min_area_frac: float = 0.004
+    grow_frac: float = 0.06
+    weak_saturation: float = 0.3
+    weak_value: float = 0.4
+    weak_cool_hue_deg: tuple[float, float] = (180.0, 345.0)
+    weak_cool_value: float = 0.55
     dilate_frac: float = 0.01
 
 
@@ -114,6 +126,17 @@ def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig())
     keep = np.zeros(n, dtype=bool)
     keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= config.min_area_frac * h * w
     m = keep[cc].astype(np.uint8)
+    if config.grow_frac > 0 and m.any():
+        wlo, whi = config.weak_cool_hue_deg
+        weak = ((s < config.weak_saturation) | (v < config.weak_value)
+                | ((hue >= wlo) & (hue <= whi) & (v < config.weak_cool_value))).astype(np.uint8)
+        step = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+        for _ in range(max(1, int(round(config.grow_frac * w)))):  # geodesic dilation inside `weak`
+            grown = cv2.dilate(m, step) & (weak | m)
+            if np.array_equal(grown, m):
+                break
+            m = grown
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, kernel(config.close_frac))
     if config.dilate_frac > 0:
         m = cv2.dilate(m, kernel(config.dilate_frac))
     return m.astype(bool)

@@ -41,6 +41,10 @@ class ReconConfig:
         working_distance: metres, for the depth fallback and model-depth rescaling.
         tool_depth_factor: with non-metric depth, tools start at this fraction of the tissue depth
             (instruments sit between the camera and the tissue).
+        camera_motion: learn a pose per frame for a moving endoscope ("on"), keep the camera fixed
+            ("off"), or "auto": on when the dataset gives neither camera poses nor depth (CholecSeg8K,
+            plain videos), off otherwise (EndoNeRF's fixed endoscope, procedural scenes). Poses start
+            from :func:`endogsim.priors.camera.estimate_camera_rotations`.
     Schedule:
         iters: total iterations (coarse + deformation).
         coarse_fraction: share of ``iters`` spent on the static coarse stage.
@@ -49,7 +53,9 @@ class ReconConfig:
         eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
             the evaluation time is not counted as training time.
         time_budget_s: stop training once this many training seconds are spent (None: no limit) and
-            export what there is; ``metrics.json`` then says ``stopped_by_time_budget``.
+            export what there is; ``metrics.json`` then says ``stopped_by_time_budget``. The schedules
+            (coarse stage, learning-rate decay, densification window) then run on the larger of the
+            iteration and the time fractions, so a budget-limited run still completes them.
     Initialisation:
         init_stride: back-project every ``init_stride``-th pixel in x and y.
         init_scale: initial standard deviation in units of the grid spacing (smaller: fewer pixel-Gaussian
@@ -67,7 +73,7 @@ class ReconConfig:
         lr_means, lr_means_final: per unit extent, decayed exponentially over the run.
         lr_sh, lr_opacity, lr_scales, lr_quats: 3DGS values.
         lr_grid, lr_mlp: HexPlane planes and MLP heads (Endo-4DGS values), decayed by 10x.
-        lr_tool_rot (rad), lr_tool_trans (per unit extent).
+        lr_tool_rot (rad), lr_tool_trans (per unit extent); lr_camera_rot, lr_camera_trans likewise.
     Densification (3DGS):
         densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
         (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
@@ -85,6 +91,7 @@ class ReconConfig:
     seg_config: str | None = None
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
+    camera_motion: str = "auto"
 
     iters: int = 2000
     coarse_fraction: float = 0.05
@@ -117,6 +124,8 @@ class ReconConfig:
     lr_mlp: float = 1.6e-4
     lr_tool_rot: float = 2e-3
     lr_tool_trans: float = 2e-3
+    lr_camera_rot: float = 5e-4
+    lr_camera_trans: float = 5e-4
 
     densify_from: float = 0.1
     densify_until: float = 0.6
@@ -149,6 +158,8 @@ class ReconConfig:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
         if self.time_budget_s is not None and self.time_budget_s <= 0:
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
+        if self.camera_motion not in ("auto", "on", "off"):
+            raise DataError(f"camera_motion {self.camera_motion!r} must be 'auto', 'on' or 'off'")
         if self.device not in ("auto", "cpu", "cuda"):
             raise DataError(f"device {self.device!r} must be 'auto', 'cpu' or 'cuda'")
         return self

@@ -10,7 +10,8 @@ Run-folder files (all written atomically):
 ``canonical.ply``          canonical Gaussians, 3DGS layout + ``object_id`` (tissue then tools)
 ``frame0.ply``             the Gaussians at frame 0 (deformed tissue, tools at their frame-0 pose)
 ``deformation.pt``         torch file: the deformation field (architecture + state dict), the tool
-                           motion state dict, frame times, camera, label table
+                           motion state dict, frame times, camera (+ per-frame ``viewmats`` of a
+                           moving endoscope), label table
 ``tool_trajectories.json`` per tool: id, name, [T, 4, 4] canonical -> frame transforms (world metres)
 ``tool_trajectories.npz``  the same arrays, ``object_<id>`` [T, 4, 4] and ``times`` [T] (seconds)
 ``objects.json``           id -> name, is_tool, class
@@ -152,8 +153,10 @@ class Reconstruction:
         deformation: the tissue deformation field.
         motion: rigid tool motion (None without tools).
         times: [T] frame times (seconds).
-        camera: the camera of the training resolution.
+        camera: the camera of the training resolution, at frame 0's pose (the world frame).
         labels: object table.
+        viewmats: [T, 4, 4] world->camera transform of every frame for a moving endoscope (learnt poses),
+            None for a fixed one.
     """
 
     tissue: Gaussians
@@ -163,6 +166,7 @@ class Reconstruction:
     times: torch.Tensor
     camera: Camera
     labels: dict[int, ObjectLabel] = field(default_factory=dict)
+    viewmats: torch.Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -176,6 +180,12 @@ class Reconstruction:
         return compose_at(self.tissue, self.tools, self.deformation, self.motion, float(self.times[frame]), frame,
                           include_tools)
 
+    def camera_at(self, frame: int) -> Camera:
+        """The camera that saw frame ``frame``."""
+        if self.viewmats is None:
+            return self.camera
+        return Camera(self.camera.K, self.camera.width, self.camera.height, self.viewmats[frame].to(self.camera.K))
+
     def tool_transforms(self) -> dict[int, torch.Tensor]:
         """Object id -> [T, 4, 4] canonical -> frame rigid transforms (world metres)."""
         if self.motion is None:
@@ -188,7 +198,7 @@ class Reconstruction:
         """:class:`~endogsim.gaussians.render.RenderOutput` of frame ``frame``."""
         from endogsim.gaussians.render import render_gaussians
 
-        return render_gaussians(self.gaussians_at(frame, include_tools), self.camera, backend=backend)
+        return render_gaussians(self.gaussians_at(frame, include_tools), self.camera_at(frame), backend=backend)
 
 
 def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reconstruction:
@@ -212,10 +222,11 @@ def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reco
     camera = Camera(torch.as_tensor(cam["K"], dtype=torch.float32), int(cam["width"]), int(cam["height"]))
     labels = {int(k): ObjectLabel(int(k), v["name"], bool(v["is_tool"]), v["class"]) for k, v in data["labels"].items()}
     rec = Reconstruction(g.subset(torch.arange(n_t)), g.subset(torch.arange(n_t, len(g))), deformation, motion,
-                         torch.as_tensor(data["times"], dtype=torch.float32), camera, labels)
+                         torch.as_tensor(data["times"], dtype=torch.float32), camera, labels, data.get("viewmats"))
     if device != "cpu":
         rec.tissue, rec.tools = rec.tissue.to(device), rec.tools.to(device)
         rec.deformation = rec.deformation.to(device)
         rec.motion = rec.motion.to(device) if rec.motion is not None else None
         rec.camera = rec.camera.to(device)
+        rec.viewmats = rec.viewmats.to(device) if rec.viewmats is not None else None
     return rec

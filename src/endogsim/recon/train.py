@@ -17,6 +17,11 @@ Losses per iteration (frame t drawn from a shuffled list of training frames):
   (the tools must cover their mask and nothing else) and pose smoothness.
 
 The tissue model never sees tool pixels, so instruments leave no smear in the tissue.
+
+A moving endoscope (``camera_motion``; on by default for data with neither poses nor depth) gets a
+learnt pose per frame (:class:`~endogsim.recon.camera_motion.CameraMotion`, started from tracked tissue
+features); every frame is rendered from its pose, test frames from poses interpolated between their
+training neighbours. With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from endogsim.errors import DataError
 from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.render import render_gaussians
+from endogsim.recon.camera_motion import CameraMotion
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
@@ -60,14 +66,21 @@ def _resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _lr_exp(it: int, total: int, lr0: float, lr1: float) -> float:
-    """Log-linear decay from lr0 at 0 to lr1 at ``total``."""
-    f = min(max(it / max(total, 1), 0.0), 1.0)
+def _lr_exp(f: float, lr0: float, lr1: float) -> float:
+    """Log-linear decay from lr0 at progress 0 to lr1 at progress 1."""
+    f = min(max(f, 0.0), 1.0)
     return math.exp(math.log(lr0) * (1 - f) + math.log(lr1) * f)
 
 
 def _masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return ((pred - gt).abs() * mask[..., None]).sum() / (mask.sum() * 3).clamp_min(1.0)
+
+
+def _wants_camera_motion(mode: str, prep: PreparedScene) -> bool:
+    """"auto": a moving endoscope is assumed when the dataset gives neither poses nor depth."""
+    if mode == "auto":
+        return prep.scene.poses is None and prep.scene.depth is None
+    return mode == "on"
 
 
 class Trainer:
@@ -90,7 +103,6 @@ class Trainer:
         self.depth = torch.as_tensor(prep.depth, device=dev) if prep.depth_metric else None
         self.times = torch.as_tensor(sc.times, dtype=torch.float32)
         self.camera = Camera(torch.as_tensor(sc.K, dtype=torch.float32), sc.width, sc.height).to(dev)
-        self.n_coarse = int(round(config.iters * config.coarse_fraction))
         self.iteration = 0
         self.elapsed = 0.0
         self.history: list[dict] = []
@@ -111,6 +123,12 @@ class Trainer:
             {"params": [p for n, p in self.deformation.named_parameters() if not n.startswith("hexplane.")],
              "lr": c.lr_mlp, "name": "mlp"},
         ], eps=1e-15)
+        self.camera_opt = None
+        if self.camera_motion is not None:
+            self.camera_opt = torch.optim.Adam([
+                {"params": [self.camera_motion.rotation], "lr": c.lr_camera_rot, "name": "rot"},
+                {"params": [self.camera_motion.translation], "lr": c.lr_camera_trans * self.extent, "name": "trans"},
+            ])
         self.motion_opt = None
         if self.motion is not None:
             self.motion_opt = torch.optim.Adam([
@@ -143,6 +161,12 @@ class Trainer:
             with torch.no_grad():
                 self.motion.rotation.copy_(ini.init_rotation)
             self.tool_visible = ini.visible
+        self.camera_motion = None
+        if _wants_camera_motion(c.camera_motion, prep):
+            from endogsim.priors.camera import estimate_camera_rotations
+
+            rot = estimate_camera_rotations(prep.scene.frames, prep.tissue, prep.scene.K)
+            self.camera_motion = CameraMotion(len(t), torch.as_tensor(rot)).to(self.device)
         self._build_optimizers()
 
     def state(self) -> dict:
@@ -154,6 +178,8 @@ class Trainer:
             "motion": None if self.motion is None else {"tool_ids": self.motion.tool_ids,
                                                         "state_dict": self.motion.state_dict()},
             "motion_opt": None if self.motion_opt is None else self.motion_opt.state_dict(),
+            "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
+            "camera_opt": None if self.camera_opt is None else self.camera_opt.state_dict(),
             "tool_visible": self.tool_visible, "gen": self.gen.get_state(), "order": list(self._order),
             "torch_rng": torch.get_rng_state(),
         }
@@ -171,7 +197,14 @@ class Trainer:
             self.motion.load_state_dict(sd)
             self.motion = self.motion.to(self.device)
         self.tool_visible = st["tool_visible"]
+        self.camera_motion = None
+        if st.get("camera_motion") is not None:
+            self.camera_motion = CameraMotion(st["camera_motion"]["rotation"].shape[1])
+            self.camera_motion.load_state_dict(st["camera_motion"])
+            self.camera_motion = self.camera_motion.to(self.device)
         self._build_optimizers()
+        if self.camera_opt is not None:
+            self.camera_opt.load_state_dict(st["camera_opt"])
         self.deform_opt.load_state_dict(st["deform_opt"])
         if self.motion_opt is not None:
             self.motion_opt.load_state_dict(st["motion_opt"])
@@ -183,35 +216,54 @@ class Trainer:
         save_torch_atomic(self.state(), self.out / "checkpoint.pt")
 
     # ------------------------------------------------------------------ one iteration
+    def view(self, frame: int) -> Camera:
+        """The camera of ``frame``: fixed, or posed by the learnt camera motion (differentiable)."""
+        return self.camera if self.camera_motion is None else self.camera_motion.camera(self.camera, frame)
+
     def _next_frame(self) -> int:
         if not self._order:
             perm = torch.randperm(len(self.prep.train), generator=self.gen).tolist()
             self._order = [self.prep.train[i] for i in perm]
         return self._order.pop()
 
-    def _set_lrs(self) -> None:
-        c, it, total = self.cfg, self.iteration, self.cfg.iters
+    def progress(self) -> float:
+        """Share of the run done, in [0, 1]: iterations over ``iters`` or, with a time budget, the
+        training seconds over the budget when that is further along.
+
+        Every schedule (coarse/fine switch, learning-rate decay, densification window) runs on this, so
+        a run stopped by its time budget has still decayed its learning rates and finished densifying,
+        whatever the speed of the machine.
+        """
+        c = self.cfg
+        f = self.iteration / c.iters
+        if c.time_budget_s is not None:
+            f = max(f, self.elapsed / c.time_budget_s)
+        return min(f, 1.0)
+
+    def _set_lrs(self, f: float) -> None:
+        c = self.cfg
         for gp in (self.tissue, self.tools):
             if gp is not None:
-                gp.set_lr("means", _lr_exp(it, total, c.lr_means * self.extent, c.lr_means_final * self.extent))
-        fine_it = max(0, it - self.n_coarse)
-        fine_total = max(1, total - self.n_coarse)
+                gp.set_lr("means", _lr_exp(f, c.lr_means * self.extent, c.lr_means_final * self.extent))
+        c0 = c.coarse_fraction
+        fine_f = (f - c0) / (1 - c0) if c0 < 1 else 0.0
         for g in self.deform_opt.param_groups:
             base = c.lr_grid if g["name"] == "grid" else c.lr_mlp
-            g["lr"] = _lr_exp(fine_it, fine_total, base, base * 0.1)
+            g["lr"] = _lr_exp(fine_f, base, base * 0.1)
 
     def step(self) -> dict:
         c = self.cfg
-        fine = self.iteration >= self.n_coarse
+        f = self.progress()
+        fine = c.coarse_fraction < 1 and f >= c.coarse_fraction
         t = self._next_frame()
         time_t = float(self.times[t])
-        self._set_lrs()
+        self._set_lrs(f)
         gt = self.frames[t]
         m = self.tissue_mask[t]
         g = compose_at(self.tissue.gaussians(), None, self.deformation if fine else None, None, time_t, t, False)
         if not g.means.is_leaf:
             g.means.retain_grad()
-        out = render_gaussians(g, self.camera, backend=c.backend)
+        out = render_gaussians(g, self.view(t), backend=c.backend)
         means2d = out.meta.get("means2d")
         if means2d is not None and means2d.requires_grad and out.meta.get("backend") == "torch":
             means2d.retain_grad()
@@ -232,7 +284,7 @@ class Trainer:
 
         if self.tools is not None and self.iteration % c.tool_every == 0 and self.tool_visible[:, t].any():
             tg = self.motion.apply(self.tools.gaussians(), t)
-            tout = render_gaussians(tg, self.camera, backend=c.backend)
+            tout = render_gaussians(tg, self.view(t), backend=c.backend)
             tm = self.tool_mask[t]
             comp = tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach()
             tloss = _masked_l1(comp, gt, tm) + c.lambda_tool_alpha * (tout.alpha - tm).abs().mean()
@@ -244,13 +296,16 @@ class Trainer:
             info["tool_loss"] = float(tloss.detach())
 
         self.tissue.step()
+        if self.camera_opt is not None:
+            self.camera_opt.step()
+            self.camera_opt.zero_grad(set_to_none=True)
         if fine:
             self.deform_opt.step()
         self.deform_opt.zero_grad(set_to_none=True)
 
         it = self.iteration + 1
-        lo, hi = int(c.densify_from * c.iters), int(c.densify_until * c.iters)
-        if lo < it <= hi and it % c.densify_every == 0:
+        f_done = max(f, min(it / c.iters, 1.0))  # the progress including this iteration
+        if c.densify_from < f_done <= c.densify_until and it % c.densify_every == 0:
             # A bounded growth per step: adding most of the set at once drops the PSNR for a while (the
             # children start as opaque as their parents) and makes every later iteration slower.
             cap = min(c.max_gaussians, int(len(self.tissue) * (1 + c.densify_max_growth)))
@@ -321,15 +376,24 @@ class Trainer:
         return compose_at(self.tissue.gaussians().detach(), self.tools.gaussians().detach() if self.tools else None,
                           self.deformation, self.motion, float(self.times[frame]), frame, include_tools)
 
+    def _fill_untrained_camera_poses(self) -> None:
+        """Test frames are never trained: their camera poses come from the neighbouring training frames."""
+        if self.camera_motion is not None:
+            trained = torch.zeros(len(self.times), dtype=torch.bool)
+            trained[self.prep.train] = True
+            self.camera_motion.interpolate_missing(trained)
+
     @torch.no_grad()
     def evaluate(self, frames: list[int], render_dir: Path | None = None) -> dict:
         """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``."""
         from endogsim.io.video_writer import write_frames_png
 
+        self._fill_untrained_camera_poses()
         res = {"psnr_masked": [], "psnr_endonerf": [], "ssim_masked": [], "ssim_endonerf": [], "psnr_full": []}
         renders, full = [], []
         for t in frames:
-            pred = render_gaussians(self.gaussians_at(t, False), self.camera, backend=self.cfg.backend).rgb.clamp(0, 1)
+            cam = self.view(t)
+            pred = render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb.clamp(0, 1)
             gt = self.frames[t]
             m, tool = self.tissue_mask[t], self.tool_mask[t]
             res["psnr_masked"].append(psnr(pred, gt, m))
@@ -340,7 +404,7 @@ class Trainer:
             renders.append(pred.cpu().numpy())
             whole = pred
             if self.tools is not None:
-                whole = render_gaussians(self.gaussians_at(t, True), self.camera, backend=self.cfg.backend).rgb.clamp(0, 1)
+                whole = render_gaussians(self.gaussians_at(t, True), cam, backend=self.cfg.backend).rgb.clamp(0, 1)
                 full.append(whole.cpu().numpy())
             valid = ((self.tissue_mask[t] + tool) > 0).float()  # leave out background / unlabelled
             res["psnr_full"].append(psnr(whole, gt, valid))
@@ -362,6 +426,7 @@ class Trainer:
             for t in self.prep.test:
                 trained[:, t] = False
             self.motion.interpolate_missing(trained)
+        self._fill_untrained_camera_poses()
         tissue = self.tissue.gaussians().detach().to("cpu")
         tools = self.tools.gaussians().detach().to("cpu") if self.tools is not None else None
         canonical = Gaussians.concat([tissue, tools]) if tools is not None else tissue
@@ -374,6 +439,7 @@ class Trainer:
             "tool_motion": None if self.motion is None else {
                 "tool_ids": self.motion.tool_ids, "state_dict": {k: v.cpu() for k, v in self.motion.state_dict().items()}},
             "num_tissue": len(tissue), "times": self.times.cpu(), "labels": labels,
+            "viewmats": None if self.camera_motion is None else self.camera_motion.transforms()[0].detach().cpu(),
             "camera": {"K": self.camera.K.cpu().tolist(), "width": self.camera.width, "height": self.camera.height},
         }, out / "deformation.pt")
         write_json_atomic(out / "objects.json", labels)
@@ -388,7 +454,9 @@ class Trainer:
             arrays = {}
         write_json_atomic(out / "tool_trajectories.json", {
             "convention": "per tool: [T, 4, 4] rigid transforms, canonical Gaussians -> frame t, world = camera "
-                          "frame of a fixed endoscope, metres", "times": self.times.tolist(), "tools": traj})
+                          "frame of frame 0 (of the fixed endoscope, or of a moving one: see camera_poses), metres",
+            "camera_poses": None if self.camera_motion is None
+            else self.camera_motion.transforms()[0].detach().cpu().tolist(), "times": self.times.tolist(), "tools": traj})
         tmp = out / "tool_trajectories.tmp.npz"
         np.savez(tmp, times=self.times.numpy(), **arrays)
         tmp.replace(out / "tool_trajectories.npz")
@@ -404,9 +472,12 @@ class Trainer:
             "num_tool_gaussians": 0 if tools is None else len(tools),
             "resolution": [sc.width, sc.height], "device": str(self.device),
             "depth_source": self.prep.depth_source, "segmentation_source": self.prep.seg_source,
+            "camera_motion": self.camera_motion is not None,
+            "tissue_pixel_fraction": float(self.prep.tissue[self.prep.test].mean()) if self.prep.test else None,
             "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
                          "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
                          "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
+                         "tissue_pixel_fraction": "share of the test frames' pixels the masked metrics cover",
                          "render": "tissue model only (tools are a separate model), except psnr_full"},
             "init": self.init_info, "history": self.history,
         }
