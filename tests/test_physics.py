@@ -199,9 +199,9 @@ def test_particles_thrown_out_of_the_domain_stay_finite_and_inside():
 def test_cpu_and_cuda_trajectories_agree():
     import warp as wp
 
-    from endogsim.physics.rollout import _init_warp
+    from endogsim.warp_runtime import init_warp
 
-    _init_warp()
+    init_warp()
     if not wp.is_cuda_available():
         pytest.skip("CUDA is not available")
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.06), 0.0015)

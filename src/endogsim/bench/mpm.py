@@ -130,9 +130,9 @@ def register(app: typer.Typer) -> None:
         """Forward / backward throughput of the MPM simulator and full-mode peak memory."""
         import warp as wp
 
-        from endogsim.physics.rollout import _init_warp
+        from endogsim.warp_runtime import init_warp
 
-        _init_warp()
+        init_warp()
         devices = ["cpu", "cuda"] if device == "auto" and wp.is_cuda_available() else (["cpu"] if device == "auto" else [device])
         counts = [int(s) for s in sizes.split(",") if s.strip()]
         cases = run_bench(counts, frames, mem_frames, devices, memory=not no_memory)

@@ -37,10 +37,10 @@ from endogsim.errors import MaterialError, SimulationError
 from endogsim.physics import kernels as K
 from endogsim.physics.config import GradMode, MPMConfig, Scenario
 from endogsim.physics.particles import Particles
+from endogsim.warp_runtime import init_warp
 
 GRAD_MODES = ("last_substep", "frame", "full")
 
-_warp_ready = False
 _POOL_CACHE = None  # (key, pool) of the last taped-segment buffers
 
 
@@ -50,18 +50,9 @@ def release_buffers() -> None:
     _POOL_CACHE = None
 
 
-def _init_warp() -> None:
-    global _warp_ready
-    if not _warp_ready:
-        # Keep CLI output clean: Warp's start-up and module-load lines are INFO messages.
-        wp.config.log_level = max(int(wp.config.log_level), 30)
-        wp.init()
-        _warp_ready = True
-
-
 def resolve_device(device: str) -> str:
     """A Warp device name that exists here ("cuda" without a GPU is refused with a clear error)."""
-    _init_warp()
+    init_warp()
     if device.startswith("cuda") and not wp.is_cuda_available():
         raise SimulationError(f"device {device!r} requested but CUDA is not available to Warp on this machine")
     return device
@@ -247,7 +238,7 @@ class _Engine:
 
     def __init__(self, particles: Particles, scenario: Scenario, config: MPMConfig, num_frames: int,
                  substeps: int, dt: float):
-        _init_warp()
+        init_warp()
         self.device = resolve_device(config.device)
         self.cfg = config
         self.box = scenario.box

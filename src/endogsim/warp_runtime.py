@@ -1,0 +1,108 @@
+"""NVIDIA Warp plumbing shared by every module that launches Warp kernels (the simulator in
+:mod:`endogsim.physics`, the CPU renderer in :mod:`endogsim.gaussians.rasterize_warp`, the HexPlane
+sampler in :mod:`endogsim.recon.hexplane_warp`): start-up, torch interop, and split launches.
+
+Warp runs a CPU launch serially, as native code, and releases the GIL while it runs; :func:`launch_split`
+therefore splits a launch over independent items (pixels, points) into interleaved bands, one per torch
+thread, launched from a small thread pool. Kernels launched that way take ``(band, n_bands)`` as their
+last scalar arguments and handle item ``wp.tid() * n_bands + band``; a band must not write where another
+band writes (accumulate into one buffer per band, then sum).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import torch
+import warp as wp
+
+__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split"]
+
+_ready = False
+_POOL: ThreadPoolExecutor | None = None
+_LAUNCHED: set = set()  # (kernel, device, argument types) launched once already
+
+
+def init_warp() -> None:
+    """``wp.init()`` on first use, with Warp's start-up and module-load INFO lines silenced, and without
+    the native "Could not find or load the NVIDIA CUDA driver" line on machines that have no GPU (CPU runs
+    are the normal case here, not a fault); anything else Warp writes to stderr at start-up is kept."""
+    global _ready
+    if not _ready:
+        wp.config.log_level = max(int(wp.config.log_level), 30)
+        _quiet_native_stderr(wp.init, drop="Could not find or load the NVIDIA CUDA driver")
+        _ready = True
+
+
+def _quiet_native_stderr(fn: Callable, drop: str) -> None:
+    """Call ``fn`` with file descriptor 2 captured (native code writes there directly, past ``sys.stderr``)
+    and re-emit the captured lines except those containing ``drop``."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (embedded interpreters): nothing to filter
+        fn()
+        return
+    with tempfile.TemporaryFile(mode="w+b") as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            fn()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        kept = [ln for ln in captured.read().decode(errors="replace").splitlines(keepends=True) if drop not in ln]
+    if kept:
+        sys.stderr.write("".join(kept))
+
+
+def warp_array(t: torch.Tensor, dtype=None):
+    """A zero-copy Warp view of a (made contiguous) torch tensor; ``dtype`` a Warp vector type to view the
+    last dimension as vectors."""
+    init_warp()
+    return wp.from_torch(t.contiguous(), dtype=dtype)
+
+
+def warp_device(t: torch.Tensor) -> str:
+    """The Warp device of a torch tensor."""
+    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
+
+
+@functools.lru_cache(maxsize=None)
+def float_vector(n: int):
+    """The Warp vector type of ``n`` float32 channels (generic kernels compile one instance per length)."""
+    return wp.types.vector(length=n, dtype=wp.float32)
+
+
+def n_bands(device: str, n_items: int, min_items: int = 4096) -> int:
+    """Bands a launch over ``n_items`` is split into: one per torch thread on CPU (at most 8), one on CUDA."""
+    return 1 if device != "cpu" or n_items < min_items else max(1, min(torch.get_num_threads(), 8))
+
+
+def launch_split(kernel, n_items: int, device: str, bands: int, inputs: Callable[[int, int], list]) -> None:
+    """Launch ``kernel`` over ``n_items`` items in ``bands`` interleaved bands, each from its own thread.
+
+    Args:
+        inputs: callable(band, n_bands) -> the kernel's argument list for that band.
+    """
+    global _POOL
+    init_warp()
+    args = [inputs(b, bands) for b in range(bands)]
+    dims = [-(-(n_items - b) // bands) for b in range(bands)]
+    # Warp builds a kernel overload on its first launch, which is not safe from several threads at once.
+    key = (kernel.key, device, tuple(type(a) for a in args[0]), tuple(getattr(a, "dtype", None) for a in args[0]))
+    if bands == 1 or key not in _LAUNCHED:
+        for dim, a in zip(dims, args):
+            wp.launch(kernel, dim=dim, inputs=a, device=device)
+        _LAUNCHED.add(key)
+        return
+    if _POOL is None or _POOL._max_workers < bands:
+        _POOL = ThreadPoolExecutor(max_workers=bands, thread_name_prefix="endogsim-warp")
+    jobs = [_POOL.submit(wp.launch, kernel, dim=dim, inputs=a, device=device) for dim, a in zip(dims, args)]
+    for job in jobs:
+        job.result()
