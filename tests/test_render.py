@@ -68,12 +68,14 @@ def _reference(means, covars, opac, colors, feats, cam, bg):
     return out, alpha_img
 
 
-def test_matches_brute_force_reference():
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_matches_brute_force_reference(backend):
     means, quats, scales, opac, colors, cam = _scene(dtype=torch.float32)
     feats = torch.randn(len(means), 2)
     bg = torch.tensor([0.1, 0.2, 0.3])
     out = rasterize(means, opac, colors, cam, quats=quats, scales=scales, features=feats, background=bg,
-                    backend="torch")
+                    backend=backend)
+    assert out.meta["backend"] == backend
     covars = covariance_from_scale_rot(scales.double(), quats.double())
     ref, ref_alpha = _reference(means, covars, opac, colors, feats, cam, bg.double().numpy())
     assert out.rgb.shape == (cam.height, cam.width, 3) and out.features.shape == (cam.height, cam.width, 2)
@@ -164,7 +166,8 @@ def test_render_gaussians_uses_sh_dc_colour_and_activations():
     assert torch.allclose(c, torch.tensor([0.2, 0.5, 0.9]), atol=1e-5)
 
 
-def test_depth_and_alpha_sanity():
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_depth_and_alpha_sanity(backend):
     # A dense opaque layer at z = 0.1 m in front of another at z = 0.3 m: depth 0.1, alpha ~1.
     ys, xs = torch.meshgrid(torch.linspace(-0.06, 0.06, 40), torch.linspace(-0.06, 0.06, 40), indexing="ij")
     front = torch.stack([xs.flatten(), ys.flatten(), torch.full((1600,), 0.1)], 1)
@@ -176,24 +179,25 @@ def test_depth_and_alpha_sanity():
     quats = torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4)
     cam = Camera.from_focal(100.0, 40, 32)
     out = rasterize(means, torch.full((n,), 0.99), torch.rand(n, 3), cam, quats=quats, scales=scales,
-                    background=torch.tensor([1.0, 0.0, 0.0]), backend="torch")
+                    background=torch.tensor([1.0, 0.0, 0.0]), backend=backend)
     assert (out.alpha > 0.99).all()
     assert torch.allclose(out.depth, torch.full_like(out.depth, 0.1), atol=1e-3)
     # Nothing in front of the camera: alpha 0, depth 0, the background everywhere.
     out = rasterize(-means, torch.full((n,), 0.99), torch.rand(n, 3), cam, quats=quats, scales=scales,
-                    background=torch.tensor([1.0, 0.0, 0.0]), backend="torch")
+                    background=torch.tensor([1.0, 0.0, 0.0]), backend=backend)
     assert (out.alpha == 0).all() and (out.depth == 0).all()
     assert torch.equal(out.rgb, torch.tensor([1.0, 0.0, 0.0]).expand(32, 40, 3))
 
 
-def test_depth_ordering_and_occlusion():
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_depth_ordering_and_occlusion(backend):
     """An opaque near Gaussian hides a far one whatever their order in the input."""
     means = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.2]])
     covars = torch.diag(torch.tensor([0.05, 0.05, 0.01]) ** 2).expand(2, 3, 3)
     colors = torch.tensor([[1.0, 0, 0], [0, 1.0, 0]])
     cam = Camera.from_focal(100.0, 16, 16)
     for perm in ([0, 1], [1, 0]):
-        out = rasterize(means[perm], torch.full((2,), 0.99), colors[perm], cam, covars=covars[perm], backend="torch")
+        out = rasterize(means[perm], torch.full((2,), 0.99), colors[perm], cam, covars=covars[perm], backend=backend)
         c = out.rgb[8, 8]
         assert c[1] > 0.98 and c[0] < 0.011
         assert abs(out.depth[8, 8].item() - 0.2) < 0.01
@@ -236,6 +240,50 @@ def test_chunked_equals_unchunked():
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("tile_size", [1, 4, 16])
+def test_warp_backend_matches_torch_values_and_gradients(tile_size, monkeypatch):
+    """The Warp tile compositor against the PyTorch reference: images and the gradients of every input,
+    with features, a background, degenerate and off-screen Gaussians, at several tile sizes."""
+    import endogsim.gaussians.render as render_mod
+    from endogsim.gaussians.rasterize_warp import bin_gaussians
+
+    monkeypatch.setattr(render_mod, "bin_gaussians", lambda *a: bin_gaussians(*a, tile_size=tile_size))
+    means, quats, scales, opac, colors, cam = _scene(n=400, w=61, h=45, seed=8, dtype=torch.float32)
+    cam = Camera(cam.K * torch.tensor([[2.6], [2.4], [1.0]]), 61, 45, cam.viewmat)
+    means[:5, :2] += 3.0  # off screen
+    scales[5:8] = 1e-6  # sub-pixel: only the eps2d dilation
+    opac[8:12] = 0.999  # above the alpha clamp
+    feats = torch.randn(len(means), 3, generator=torch.Generator().manual_seed(9))
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    wts = torch.randn(45, 61, 9, generator=torch.Generator().manual_seed(10))
+    outs = {}
+    for backend in ("torch", "warp"):
+        args = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, feats, bg)]
+        o = rasterize(args[0], args[3], args[4], cam, quats=args[1], scales=args[2], features=args[5],
+                      background=args[6], backend=backend)
+        img = torch.cat([o.rgb, o.depth[..., None], o.alpha[..., None], o.features, (o.depth * o.alpha)[..., None]], -1)
+        outs[backend] = (img.detach(), torch.autograd.grad((img * wts).sum(), args))
+    (ti, tg), (wi, wg) = outs["torch"], outs["warp"]
+    assert (ti - wi).abs().max() < 2e-5
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "features", "background"), tg, wg):
+        assert (a - b).abs().max() <= 1e-4 * a.abs().max() + 1e-7, name
+
+
+def test_auto_backend_is_warp_for_float32_and_torch_for_float64_on_cpu():
+    means, quats, scales, opac, colors, cam = _scene(n=20, seed=11)
+    assert rasterize(means, opac, colors, cam, quats=quats, scales=scales).meta["backend"] == "torch"
+    f32 = [t.float() for t in (means, quats, scales, opac, colors)]
+    out = rasterize(f32[0], f32[3], f32[4], cam.to("cpu"), quats=f32[1], scales=f32[2])
+    assert out.meta["backend"] == "warp"
+    # nothing visible: the background everywhere, and gradients are zero rather than failing
+    f32[0] = (-f32[0]).requires_grad_(True)
+    out = rasterize(f32[0], f32[3], f32[4], cam.to("cpu"), quats=f32[1], scales=f32[2],
+                    background=torch.tensor([0.5, 0.25, 1.0]), backend="warp")
+    assert torch.equal(out.rgb, torch.tensor([0.5, 0.25, 1.0]).expand_as(out.rgb)) and (out.alpha == 0).all()
+    out.rgb.sum().backward()
+    assert (f32[0].grad == 0).all()
+
+
 @pytest.mark.gpu
 def test_gsplat_matches_torch_backend():
     if not torch.cuda.is_available():
@@ -263,7 +311,8 @@ def test_gsplat_matches_torch_backend():
         assert (a - b).abs().max() <= 1e-3 * b.abs().max() + 1e-6
 
 
-def test_opaque_stack_stops_at_min_transmittance():
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_opaque_stack_stops_at_min_transmittance(backend):
     """Many overlapping near-opaque Gaussians: the 1e-4 transmittance stop and the 0.99 clamp matter here."""
     g = torch.Generator().manual_seed(7)
     n, w, h = 40, 12, 10
@@ -274,7 +323,7 @@ def test_opaque_stack_stops_at_min_transmittance():
     colors = torch.rand(n, 3, generator=g)
     feats = torch.randn(n, 1, generator=g)
     cam = Camera(torch.tensor([[20.0, 0, 6.1], [0, 20.0, 4.9], [0, 0, 1]]), w, h)
-    out = rasterize(means, opac, colors, cam, covars=covars, features=feats, backend="torch")
+    out = rasterize(means, opac, colors, cam, covars=covars, features=feats, backend=backend)
     ref, ref_alpha = _reference(means, covars, opac, colors, feats, cam, np.zeros(3))
     assert np.abs(out.rgb.numpy() - ref[..., :3]).max() <= 1e-5
     assert np.abs(out.features.numpy() - ref[..., 4:]).max() <= 1e-5

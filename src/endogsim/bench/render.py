@@ -155,7 +155,7 @@ def register(app: typer.Typer) -> None:
         """Forward and forward+backward time and peak memory of the renderer (5k/50k/200k Gaussians)."""
         from endogsim.gaussians.backend_gsplat import available
 
-        backends = ["torch"] + (["gsplat"] if available() else [])
+        backends = ["torch", "warp"] + (["gsplat"] if available() else [])
         todo = [(b, *c) for b in backends for c in CASES if c[0] <= max_gaussians]
         results = []
         with progress() as bar:

@@ -32,6 +32,10 @@ def register(app: typer.Typer) -> None:
         seg_method: Optional[str] = typer.Option(None, "--seg-method", help="auto, dataset, sam2 or fallback."),
         seg_checkpoint: Optional[str] = typer.Option(None, "--seg-checkpoint", help="Local SAM 2 checkpoint (.pt)."),
         seg_config: Optional[str] = typer.Option(None, "--seg-config", help="sam2 model config of the checkpoint."),
+        flow_method: Optional[str] = typer.Option(None, "--flow-method",
+                                                  help="Optical flow for the point tracks: dis (offline), raft "
+                                                       "(needs --flow-weights) or none (no tracks)."),
+        flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights (.pth)."),
         camera_motion: Optional[str] = typer.Option(None, "--camera-motion",
                                                     help="auto, on or off: learn a pose per frame for a moving "
                                                          "endoscope (auto: when the data has neither poses nor depth)."),
@@ -50,7 +54,7 @@ def register(app: typer.Typer) -> None:
                           time_budget_s=time_budget,
                           max_frames=max_frames, depth_method=depth_method, depth_weights=depth_weights,
                           seg_method=seg_method, seg_checkpoint=seg_checkpoint, seg_config=seg_config,
-                          camera_motion=camera_motion)
+                          flow_method=flow_method, flow_weights=flow_weights, camera_motion=camera_motion)
         with progress() as bar:
             task = bar.add_task("reconstruct", total=cfg.iters)
 
@@ -66,6 +70,8 @@ def register(app: typer.Typer) -> None:
                      ("training seconds", m["training_seconds"]), ("iterations", m["iterations"]),
                      ("Gaussians", m["num_gaussians"]),
                      ("depth prior", m["depth_source"]), ("segmentation", m["segmentation_source"]),
+                     ("point tracks", m["track_source"] if m["track_source"] == "none" else
+                      f"{m['track_source']} ({m['init'].get('tracked_share', 0):.0%} of Gaussian-frames)"),
                      ("camera", "moving (learnt poses)" if m["camera_motion"] else "fixed"),
                      ("tissue share of test pixels", m["tissue_pixel_fraction"])])
         console.print(f"wrote {out}")

@@ -7,6 +7,24 @@ from dataclasses import dataclass, field
 import torch
 
 
+def project_points(points: torch.Tensor, K: torch.Tensor, viewmats: torch.Tensor) -> torch.Tensor:
+    """Pixel coordinates [N, 2] (pixel (i, j) has its centre at (j + 0.5, i + 0.5)) of world points, as the
+    renderer projects Gaussian centres; differentiable.
+
+    Args:
+        points: [N, 3] world points (metres).
+        K: [3, 3] intrinsics (pixels).
+        viewmats: [4, 4] world->camera transform, or [N, 4, 4], one per point.
+    """
+    V = viewmats.to(points)
+    if V.ndim == 2:
+        p = points @ V[:3, :3].T + V[:3, 3]
+    else:
+        p = (V[:, :3, :3] @ points[..., None])[..., 0] + V[:, :3, 3]
+    K = K.to(points)
+    return p[:, :2] / p[:, 2:3].clamp_min(1e-9) * torch.stack([K[0, 0], K[1, 1]]) + torch.stack([K[0, 2], K[1, 2]])
+
+
 @dataclass
 class Camera:
     """A pinhole camera.
@@ -28,6 +46,10 @@ class Camera:
         K = self.K.clone()
         K[:2] *= factor
         return Camera(K, round(self.width * factor), round(self.height * factor), self.viewmat.clone())
+
+    def project(self, points: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates [N, 2] of world points [N, 3] (metres) seen by this camera (:func:`project_points`)."""
+        return project_points(points, self.K, self.viewmat)
 
     def to(self, device: torch.device | str) -> "Camera":
         return Camera(self.K.to(device), self.width, self.height, self.viewmat.to(device))

@@ -1,4 +1,4 @@
-"""The differentiable Gaussian renderer: one functional entry point, two backends.
+"""The differentiable Gaussian renderer: one functional entry point, three backends.
 
 ``rasterize`` takes activated Gaussian parameters (opacities in [0, 1], scales in metres or full 3x3
 covariances) and a :class:`~endogsim.gaussians.camera.Camera`, and returns RGB, expected depth, alpha
@@ -6,9 +6,12 @@ and any extra per-Gaussian feature channels, all differentiable w.r.t. every inp
 
 Backends (same conventions, see :class:`RasterConfig`):
   * ``"torch"``: the pure-PyTorch pair-list rasteriser (:mod:`endogsim.gaussians.rasterize_torch`);
-    runs on any device and is the reference.
+    runs on any device and dtype (float64 for gradcheck) and is the reference.
+  * ``"warp"``: the same projection, then tile-based compositing in NVIDIA Warp kernels
+    (:mod:`endogsim.gaussians.rasterize_warp`); float32, the fast path on CPU.
   * ``"gsplat"``: ``gsplat.rasterization`` on CUDA (:mod:`endogsim.gaussians.backend_gsplat`).
-  * ``"auto"``: gsplat when the tensors are on CUDA and gsplat imports, else torch.
+  * ``"auto"``: gsplat when the tensors are on CUDA and gsplat imports; else warp for float32 and
+    torch for float64.
 
 Depth convention: ``depth`` is the alpha-normalised expected camera z, sum_i w_i z_i / sum_i w_i
 (gsplat's "ED"), 0 where nothing was drawn; ``alpha`` = sum_i w_i = 1 - final transmittance. Multiply
@@ -34,9 +37,10 @@ from endogsim.errors import ModelError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, covariance_from_scale_rot
 from endogsim.gaussians.rasterize_torch import RasterConfig, build_pairs, project_gaussians, rasterize_torch
+from endogsim.gaussians.rasterize_warp import bin_gaussians, rasterize_warp
 from endogsim.gaussians.sh import sh_to_rgb
 
-Backend = Literal["auto", "torch", "gsplat"]
+Backend = Literal["auto", "torch", "warp", "gsplat"]
 
 __all__ = ["RasterConfig", "RenderOutput", "rasterize", "render_gaussians", "camera_center", "resolve_backend"]
 
@@ -51,8 +55,8 @@ class RenderOutput:
         alpha: [H, W] accumulated opacity in [0, 1].
         features: [H, W, F] composited extra channels (not normalised, no background), or None.
         meta: backend details: ``backend`` (str), ``means2d`` [N, 2] (pixels), ``radii`` [N, 2] int32
-            (0 = culled), ``depths`` [N] camera z (metres), ``n_pairs`` (int, torch backend: candidate
-            (pixel, Gaussian) pairs).
+            (0 = culled), ``depths`` [N] camera z (metres), ``n_pairs`` (int: candidate (pixel, Gaussian)
+            pairs of the torch backend, (tile, Gaussian) entries of warp and gsplat).
     """
 
     rgb: torch.Tensor
@@ -74,12 +78,14 @@ def gsplat_available() -> bool:
     return backend_gsplat.available()
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """The backend ``rasterize`` will use for tensors on ``device``."""
-    if backend not in ("auto", "torch", "gsplat"):
-        raise ModelError(f"unknown render backend {backend!r}; use 'auto', 'torch' or 'gsplat'")
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """The backend ``rasterize`` will use for tensors of ``dtype`` on ``device``."""
+    if backend not in ("auto", "torch", "warp", "gsplat"):
+        raise ModelError(f"unknown render backend {backend!r}; use 'auto', 'torch', 'warp' or 'gsplat'")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+        if device.type == "cuda" and gsplat_available():
+            return "gsplat"
+        return "warp" if dtype == torch.float32 else "torch"
     if backend == "gsplat":
         if device.type != "cuda":
             raise ModelError("render backend 'gsplat' needs the Gaussians on a CUDA device")
@@ -138,14 +144,14 @@ def rasterize(
         covars: [N, 3, 3] world covariances (metres^2); replaces quats/scales (e.g. F Sigma F^T).
         features: [N, F] extra per-Gaussian channels composited like colour (no background).
         background: [3] RGB behind the Gaussians; default black.
-        backend: "auto", "torch" or "gsplat" (see the module docstring).
+        backend: "auto", "torch", "warp" or "gsplat" (see the module docstring).
         config: numerical conventions (eps2d, near plane, alpha thresholds); defaults match gsplat.
     Returns:
         :class:`RenderOutput` (rgb [H, W, 3], depth [H, W], alpha [H, W], features [H, W, F] or None, meta).
     """
     _check_shapes(means, opacities, colors, quats, scales, covars, features, background)
     device, dtype = means.device, means.dtype
-    which = resolve_backend(backend, device)
+    which = resolve_backend(backend, device, dtype)
     if covars is None:
         covars = covariance_from_scale_rot(scales, quats)
     viewmat = camera.viewmat.to(device=device, dtype=dtype)
@@ -164,19 +170,26 @@ def rasterize(
                                 features=features, background=bg, config=config)
 
     proj = project_gaussians(means, covars, opacities, K, viewmat, camera.width, camera.height, config)
-    pairs = build_pairs(proj, opacities, camera.width, camera.height, config)
     channels = [rgb, proj.depths[:, None]] + ([features.to(dtype)] if features is not None else [])
     bg_all = torch.cat([bg, torch.zeros(1 + n_feat, device=device, dtype=dtype)])
-    image, alpha = rasterize_torch(proj.means2d, proj.conics, opacities, torch.cat(channels, 1), bg_all,
-                                   pairs, camera.width, camera.height, config)
+    if which == "warp":
+        bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, proj.valid, camera.width, camera.height)
+        image, alpha = rasterize_warp(proj.means2d, proj.conics, opacities, torch.cat(channels, 1), bg_all,
+                                      bins, camera.width, camera.height, config)
+        n_pairs = bins.n_pairs
+    else:
+        pairs = build_pairs(proj, opacities, camera.width, camera.height, config)
+        image, alpha = rasterize_torch(proj.means2d, proj.conics, opacities, torch.cat(channels, 1), bg_all,
+                                       pairs, camera.width, camera.height, config)
+        n_pairs = pairs.n_pairs
     depth = image[..., 3] / alpha.clamp_min(1e-10)
     return RenderOutput(
         rgb=image[..., :3],
         depth=depth,
         alpha=alpha,
         features=image[..., 4:] if features is not None else None,
-        meta={"backend": "torch", "means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths,
-              "n_pairs": pairs.n_pairs},
+        meta={"backend": which, "means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths,
+              "n_pairs": n_pairs},
     )
 
 
@@ -200,7 +213,7 @@ def render_gaussians(
             (the simulator passes F Sigma F^T).
         features: [N, F] extra channels to composite.
         background: [3] RGB behind the Gaussians.
-        backend: "auto", "torch" or "gsplat".
+        backend: "auto", "torch", "warp" or "gsplat".
         sh_degree: evaluate SH only up to this degree (default: all stored coefficients).
     """
     sh = gaussians.sh

@@ -7,12 +7,14 @@ Methods:
 * ``"sam2"``: SAM 2 / Surgical-SAM-2 video propagation (``sam2`` package) with a *local* checkpoint and
   model config. It is prompted on the first frame with the boxes of the offline tool detector below and
   tracks every box through the video; each track becomes one tool object (``tool_1``, ``tool_2``, ...).
-* ``"fallback"``: offline tool detection by colour. Surgical instruments (da Vinci shafts, laparoscopic
-  graspers and hooks) are grey or metallic: low saturation, mid-to-high value, unlike tissue (red, pink,
-  yellow, all saturated). :func:`grey_tool_mask` thresholds HSV, drops small specular highlights with a
-  morphological opening, keeps connected components above a minimum area, then grows them (hysteresis)
-  into adjacent darker or bluer pixels, since metal mirrors the reddish tissue around it. Crude (white fat,
-  glare and smoke are grey too): a warning says so.
+* ``"fallback"``: offline tool detection by colour and motion. Surgical instruments (da Vinci shafts,
+  laparoscopic graspers and hooks) are grey or metallic: low saturation, mid-to-high value, unlike tissue
+  (red, pink, yellow, all saturated). :func:`grey_tool_mask` thresholds HSV, drops small specular
+  highlights with a morphological opening, keeps connected components above a minimum area, then grows
+  them (hysteresis) into adjacent pixels with weaker tool evidence: darker or bluer colour (metal mirrors
+  the reddish tissue around it), or, in a video, motion unlike the tissue's (:func:`motion_residual`:
+  grasper jaws look like shadowed tissue but move with the instrument). Crude (white fat, glare and
+  smoke are grey too): a warning says so.
 * ``"auto"``: dataset masks when present, else the fallback.
 
 Every object gets a stable integer id and a name; fallback/SAM 2 tables use id 0 ``tissue`` and tool ids
@@ -31,8 +33,8 @@ from endogsim.errors import DataError, ModelError
 from endogsim.io.labels import endonerf_labels
 from endogsim.io.scene import ObjectLabel
 
-__all__ = ["Segmentation", "segment_scene", "grey_tool_mask", "GreyToolConfig", "sam2_segmentation",
-           "SEG_METHODS"]
+__all__ = ["Segmentation", "segment_scene", "grey_tool_mask", "motion_residual", "GreyToolConfig",
+           "sam2_segmentation", "SEG_METHODS"]
 
 SEG_METHODS = ("auto", "dataset", "sam2", "fallback")
 
@@ -78,6 +80,10 @@ class GreyToolConfig:
             value below ``weak_cool_value``.
         dilate_frac: the final mask is grown by this fraction of the width, so tool borders (dark
             edges, motion blur, shadows at the contact) stay out of the tissue loss.
+        motion_threshold: weaker test in a video: :func:`motion_residual` above this (colour units in
+            [0, 1]); None turns the motion cue off.
+        motion_sigma_frac: width (fraction of the image width) of the Gaussian that averages the tissue
+            flow into the smooth tissue motion the residual is measured against.
     """
 
     max_saturation: float = 0.15
@@ -87,20 +93,64 @@ class GreyToolConfig:
     open_frac: float = 0.012
     close_frac: float = 0.02
     min_area_frac: float = 0.004
-    grow_frac: float = 0.06
+    grow_frac: float = 0.25
     weak_saturation: float = 0.3
     weak_value: float = 0.4
     weak_cool_hue_deg: tuple[float, float] = (180.0, 345.0)
     weak_cool_value: float = 0.55
     dilate_frac: float = 0.01
+    motion_threshold: float | None = 0.08
+    motion_sigma_frac: float = 0.04
 
 
-def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig()) -> np.ndarray:
+def motion_residual(frames: np.ndarray, t: int, exclude: np.ndarray, sigma_frac: float = 0.04,
+                    estimator=None) -> np.ndarray:
+    """How badly the smooth motion of the tissue explains frame ``t``: [H, W] float in [0, 1].
+
+    For each neighbour s = t - 1, t + 1 the optical flow t -> s is averaged over the pixels not in
+    ``exclude`` with a wide normalised Gaussian (the tissue's smooth motion), frame s is warped back with
+    it and compared with frame t (max over channels); the result is the larger residual of the two
+    neighbours. Tissue follows its own smooth motion (small residual, except at specular highlights and
+    occlusion edges); an instrument moving over it does not.
+
+    Args:
+        frames: [T, H, W, 3] RGB in [0, 1].
+        t: the frame.
+        exclude: [H, W] bool pixels left out of the tissue motion (the confident tool cores).
+        sigma_frac: Gaussian width as a fraction of the image width.
+        estimator: a :class:`~endogsim.priors.flow.FlowEstimator` (default: DIS, offline).
+    """
+    import cv2
+
+    from endogsim.priors.flow import DISFlow
+
+    est = estimator or DISFlow("medium")
+    T, H, W, _ = frames.shape
+    keep = (~cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)).astype(np.float32)
+    sigma = sigma_frac * W
+    weight = cv2.GaussianBlur(keep, (0, 0), sigma) + 1e-6
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    out = np.zeros((H, W), dtype=np.float32)
+    for s in (t - 1, t + 1):
+        if not 0 <= s < T:
+            continue
+        flow = est.estimate(frames[t], frames[s])
+        smooth = [cv2.GaussianBlur(flow[..., c] * keep, (0, 0), sigma) / weight for c in range(2)]
+        warped = cv2.remap(np.ascontiguousarray(frames[s], dtype=np.float32), gx + smooth[0], gy + smooth[1],
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out = np.maximum(out, np.abs(warped - frames[t]).max(-1))
+    return out
+
+
+def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig(),
+                   motion: np.ndarray | None = None) -> np.ndarray:
     """Offline instrument detector: [H, W] bool, True on grey, low-saturation regions.
 
     Args:
         frame: [H, W, 3] RGB, float in [0, 1] or uint8.
         config: thresholds (see :class:`GreyToolConfig`).
+        motion: optional [H, W] :func:`motion_residual` of the frame (a video): pixels above
+            ``config.motion_threshold`` count as weak tool evidence for the hysteresis growth.
     """
     import cv2
 
@@ -129,7 +179,10 @@ def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig())
     if config.grow_frac > 0 and m.any():
         wlo, whi = config.weak_cool_hue_deg
         weak = ((s < config.weak_saturation) | (v < config.weak_value)
-                | ((hue >= wlo) & (hue <= whi) & (v < config.weak_cool_value))).astype(np.uint8)
+                | ((hue >= wlo) & (hue <= whi) & (v < config.weak_cool_value)))
+        if motion is not None and config.motion_threshold is not None:
+            weak |= motion > config.motion_threshold
+        weak = weak.astype(np.uint8)
         step = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
         for _ in range(max(1, int(round(config.grow_frac * w)))):  # geodesic dilation inside `weak`
             grown = cv2.dilate(m, step) & (weak | m)
@@ -143,7 +196,16 @@ def grey_tool_mask(frame: np.ndarray, config: GreyToolConfig = GreyToolConfig())
 
 
 def _fallback(scene, config: GreyToolConfig) -> Segmentation:
-    tool = np.stack([grey_tool_mask(f, config) for f in scene.frames])
+    from dataclasses import replace
+
+    frames = scene.frames
+    if config.motion_threshold is None or len(frames) < 2:
+        tool = np.stack([grey_tool_mask(f, config) for f in frames])
+    else:
+        # The motion cue: tissue motion measured away from the confident cores (colour alone, not grown).
+        cores = np.stack([grey_tool_mask(f, replace(config, grow_frac=0.0, dilate_frac=0.0)) for f in frames])
+        tool = np.stack([grey_tool_mask(f, config, motion_residual(frames, t, cores[t], config.motion_sigma_frac))
+                         for t, f in enumerate(frames)])
     masks = np.where(tool, 1, 0).astype(np.int32)
     return Segmentation(masks, endonerf_labels(True), "fallback")
 

@@ -2,7 +2,8 @@
 
 Tissue: canonical Gaussians deformed by a HexPlane + multi-head MLP field (:mod:`.deformation`).
 Tools: their own Gaussians with a per-frame rigid transform (:mod:`.tools`), exported as trajectories
-for the simulator's kinematic colliders. Priors come from :mod:`endogsim.priors` (depth, segmentation).
+for the simulator's kinematic colliders. Priors come from :mod:`endogsim.priors` (depth, segmentation,
+point tracks from optical flow).
 
 Python entry (what the end-to-end pipeline calls)::
 

@@ -12,8 +12,9 @@ A config file holds any subset of the fields below (unknown keys are refused); t
 
 Defaults are for a 2-core CPU, where the cost of an iteration is the number of (pixel, Gaussian) pairs
 the rasteriser composites plus the deformation of every Gaussian: half resolution, ~10k Gaussians from
-every 3rd pixel with small initial footprints, a short static stage, bounded densification after it,
-2000 iterations. :func:`default_config` ("cuda") switches to full resolution and the Endo-4DGS schedule.
+every 3rd pixel with small initial footprints, point tracks and a track warm-up, bounded densification,
+2000 iterations (with ``time_budget_s`` the schedule follows the budget instead). :func:`default_config`
+("cuda") switches to full resolution and the Endo-4DGS iteration counts.
 """
 
 from __future__ import annotations
@@ -45,9 +46,13 @@ class ReconConfig:
             ("off"), or "auto": on when the dataset gives neither camera poses nor depth (CholecSeg8K,
             plain videos), off otherwise (EndoNeRF's fixed endoscope, procedural scenes). Poses start
             from :func:`endogsim.priors.camera.estimate_camera_rotations`.
+        flow_method / flow_weights: optical flow for the point tracks (:mod:`endogsim.priors.flow`: "dis",
+            offline, or "raft" with a local weights file); "none" trains without tracks.
     Schedule:
         iters: total iterations (coarse + deformation).
-        coarse_fraction: share of ``iters`` spent on the static coarse stage.
+        coarse_fraction: share of ``iters`` spent on Endo-4DGS's static coarse stage (default 0: with point
+            tracks the warm-up starts the deformation stage better than a static fit, which blurs whatever
+            moves; use e.g. 0.05 with ``flow_method="none"``).
         seed: RNG seed (frame order, initial planes).
         checkpoint_every: iterations between checkpoints (resume after an interruption).
         eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
@@ -68,6 +73,12 @@ class ReconConfig:
         lambda_plane_tv, lambda_time_smooth, lambda_time_l1: HexPlane regularisers.
         lambda_tool_alpha: tool-model alpha vs tool mask.
         lambda_pose_smooth: frame-to-frame smoothness of tool poses.
+        lambda_track: point-track term (:mod:`endogsim.priors.tracks`): Huber (1 px) distance between the
+            motion of a tracked Gaussian's projected centre from its seed frame and its track's; decays
+            log-linearly to ``lambda_track_final`` over the run (tracks drift, the photometric loss does not).
+        track_batch: tracked Gaussians drawn per iteration for that term.
+        track_warmup_iters: steps fitting the deformation field to the tracks alone (no rendering) before
+            the photometric stages, so large motions start right instead of at the identity.
         tool_every: optimise the tool model every n-th iteration (it costs a second render).
     Learning rates (Adam; positions scale with the scene extent, per 3DGS):
         lr_means, lr_means_final: per unit extent, decayed exponentially over the run.
@@ -79,7 +90,8 @@ class ReconConfig:
         (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
         densify_max_growth: one densification step adds at most this fraction of the current count.
     Device:
-        device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "gsplat").
+        device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "warp", "gsplat";
+            see :func:`endogsim.gaussians.render.resolve_backend`).
     """
 
     resolution_scale: float = 0.5
@@ -92,9 +104,11 @@ class ReconConfig:
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
     camera_motion: str = "auto"
+    flow_method: str = "dis"
+    flow_weights: str | None = None
 
     iters: int = 2000
-    coarse_fraction: float = 0.05
+    coarse_fraction: float = 0.0
     seed: int = 0
     checkpoint_every: int = 250
     eval_every: int = 0
@@ -112,6 +126,10 @@ class ReconConfig:
     lambda_time_l1: float = 1e-4
     lambda_tool_alpha: float = 0.2
     lambda_pose_smooth: float = 1.0
+    lambda_track: float = 0.01
+    lambda_track_final: float = 0.001
+    track_batch: int = 8192
+    track_warmup_iters: int = 300
     tool_every: int = 2
 
     lr_means: float = 1.6e-4
@@ -158,6 +176,8 @@ class ReconConfig:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
         if self.time_budget_s is not None and self.time_budget_s <= 0:
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
+        if self.flow_method not in ("dis", "raft", "none"):
+            raise DataError(f"flow_method {self.flow_method!r} must be 'dis', 'raft' or 'none'")
         if self.camera_motion not in ("auto", "on", "off"):
             raise DataError(f"camera_motion {self.camera_motion!r} must be 'auto', 'on' or 'off'")
         if self.device not in ("auto", "cpu", "cuda"):

@@ -51,11 +51,28 @@ class DeformationConfig:
     deform_color: bool = False
 
 
-def _head(width: int, out: int) -> nn.Sequential:
-    head = nn.Sequential(nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, out))
-    nn.init.zeros_(head[-1].weight)
-    nn.init.zeros_(head[-1].bias)
-    return head
+class _Heads(nn.Module):
+    """The decoder heads, each ``ReLU -> Linear(width, width) -> ReLU -> Linear(width, out_k)``.
+
+    The heads share their input, so their hidden layers run as one GEMM of width ``width * n_heads`` (the
+    same function as separate heads, at a fraction of the cost on a CPU); their output layers start at
+    zero so the untrained field is the identity.
+    """
+
+    def __init__(self, width: int, outs: dict[str, int]) -> None:
+        super().__init__()
+        self.names = list(outs)
+        self.width = width
+        self.hidden = nn.Linear(width, width * len(outs))
+        self.out = nn.ModuleDict({name: nn.Linear(width, k) for name, k in outs.items()})
+        for layer in self.out.values():
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+    def forward(self, h: torch.Tensor) -> dict[str, torch.Tensor]:
+        hidden = torch.relu(self.hidden(torch.relu(h)))
+        w = self.width
+        return {name: self.out[name](hidden[:, i * w:(i + 1) * w]) for i, name in enumerate(self.names)}
 
 
 class DeformationField(nn.Module):
@@ -79,24 +96,26 @@ class DeformationField(nn.Module):
         for _ in range(config.depth - 1):
             layers += [nn.ReLU(), nn.Linear(config.width, config.width)]
         self.feature_mlp = nn.Sequential(*layers)
-        self.head_pos = _head(config.width, 3)
-        self.head_rot = _head(config.width, 4)
-        self.head_scale = _head(config.width, 3)
-        self.head_opacity = _head(config.width, 1) if config.deform_opacity else None
-        self.head_color = _head(config.width, 3) if config.deform_color else None
+        outs = {"pos": 3, "rot": 4, "scale": 3}
+        if config.deform_opacity:
+            outs["opacity"] = 1
+        if config.deform_color:
+            outs["color"] = 3
+        self.heads = _Heads(config.width, outs)
         b = torch.as_tensor(bounds, dtype=torch.float32)
         self.register_buffer("extent", (b[1] - b[0]).max().reshape(()).clone())
 
     def forward(self, g: Gaussians, t: float | torch.Tensor) -> Gaussians:
-        """The Gaussians ``g`` (canonical, [N] each) deformed to time ``t`` (seconds); differentiable."""
-        h = self.feature_mlp(self.hexplane(g.means, t))
-        means = g.means + self.extent * self.head_pos(h)
-        quats = g.quats + self.head_rot(h)
-        log_scales = g.log_scales + self.head_scale(h)
-        opacity = g.opacity_logits + self.head_opacity(h)[:, 0] if self.head_opacity is not None else g.opacity_logits
+        """The Gaussians ``g`` (canonical, [N] each) deformed to time ``t`` (seconds: a scalar, or [N], one
+        per Gaussian); differentiable."""
+        d = self.heads(self.feature_mlp(self.hexplane(g.means, t)))
+        means = g.means + self.extent * d["pos"]
+        quats = g.quats + d["rot"]
+        log_scales = g.log_scales + d["scale"]
+        opacity = g.opacity_logits + d["opacity"][:, 0] if "opacity" in d else g.opacity_logits
         sh = g.sh
-        if self.head_color is not None:
-            sh = torch.cat([sh[:, :1] + self.head_color(h)[:, None], sh[:, 1:]], 1)
+        if "color" in d:
+            sh = torch.cat([sh[:, :1] + d["color"][:, None], sh[:, 1:]], 1)
         return Gaussians(means, quats, log_scales, opacity, sh, g.object_ids)
 
     def regularization(self, w_tv: float, w_time_smooth: float, w_time_l1: float) -> torch.Tensor:
@@ -117,5 +136,18 @@ class DeformationField(nn.Module):
         cfg["multires"] = tuple(cfg["multires"])
         cfg["time_resolution"] = int(data["time_resolution"])
         field = DeformationField(DeformationConfig(**cfg), data["bounds"], tuple(data["time_range"]), 2)
-        field.load_state_dict(data["state_dict"])
+        field.load_state_dict(_fuse_legacy_heads(dict(data["state_dict"]), field.heads.names))
         return field
+
+
+def _fuse_legacy_heads(state: dict, names: list[str]) -> dict:
+    """Convert the state dict of run folders written before the heads were fused (one ``head_<name>``
+    Sequential per head) to the fused layout of :class:`_Heads`."""
+    if f"head_{names[0]}.1.weight" not in state:
+        return state
+    state["heads.hidden.weight"] = torch.cat([state.pop(f"head_{n}.1.weight") for n in names])
+    state["heads.hidden.bias"] = torch.cat([state.pop(f"head_{n}.1.bias") for n in names])
+    for n in names:
+        state[f"heads.out.{n}.weight"] = state.pop(f"head_{n}.3.weight")
+        state[f"heads.out.{n}.bias"] = state.pop(f"head_{n}.3.bias")
+    return state

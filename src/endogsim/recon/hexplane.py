@@ -6,7 +6,8 @@ features, at each of several resolutions, the resolutions *concatenated*. Time p
 untrained field is time-independent (the product leaves the spatial features unchanged).
 
 Coordinates are normalised to [-1, 1] with an axis-aligned box (``bounds``, metres) and the time span
-(seconds); points outside the box read the border value.
+(seconds); points outside the box read the border value. On CPU the sampling runs in Warp kernels
+(:mod:`endogsim.recon.hexplane_warp`); ``grid_sample`` is the reference and the path elsewhere.
 
 Regularisers (K-Planes): :meth:`HexPlane.plane_tv` (first differences on every plane: spatial
 smoothness), :meth:`HexPlane.time_smoothness` (second differences along t: smooth motion) and
@@ -71,9 +72,18 @@ class HexPlane(nn.Module):
         tn = ((tt - t0) / (t1 - t0).clamp_min(1e-9) * 2 - 1).expand(xyz.shape[0])
         return torch.cat([p, tn[:, None]], 1).clamp(-1, 1)
 
-    def forward(self, xyz: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:
-        """Features [N, out_dim] of points ``xyz`` [N, 3] (metres) at time ``t`` (seconds)."""
+    def forward(self, xyz: torch.Tensor, t: torch.Tensor | float, backend: str = "auto") -> torch.Tensor:
+        """Features [N, out_dim] of points ``xyz`` [N, 3] (metres) at time ``t`` (seconds: a scalar or [N]).
+
+        ``backend``: "torch" (``grid_sample``, the reference), "warp" (:mod:`endogsim.recon.hexplane_warp`,
+        float32) or "auto": warp for float32 on CPU, where it is several times faster, torch otherwise.
+        """
         coords = self.normalize(xyz, t)
+        if backend == "warp" or (backend == "auto" and xyz.device.type == "cpu" and xyz.dtype == torch.float32):
+            from endogsim.recon.hexplane_warp import hexplane_features_warp
+
+            axes = tuple(torch.tensor([ax[i] for ax in PLANE_AXES], dtype=torch.int32) for i in (0, 1))
+            return hexplane_features_warp(coords, list(self._planes(None)), axes)
         feats = []
         for planes in self.levels:
             f = None

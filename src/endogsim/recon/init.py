@@ -45,12 +45,13 @@ def backproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray) -> n
 
 
 def _points(frame: np.ndarray, depth: np.ndarray, ids: np.ndarray, select: np.ndarray, K: np.ndarray,
-            stride: int, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            stride: int, scale: float) -> tuple[np.ndarray, ...]:
+    """Points, colours, ids, standard deviations and pixel centres [M, 2] of the ``select`` pixels."""
     v, u = np.nonzero(select)
     z = depth[v, u]
     pts = backproject(u, v, z, K)
     sigma = scale * stride * z / K[0, 0]
-    return pts, frame[v, u], ids[v, u], sigma
+    return pts, frame[v, u], ids[v, u], sigma, np.stack([u + 0.5, v + 0.5], 1).astype(np.float32)
 
 
 def _gaussians(pts, cols, ids, sigma, opacity: float, sh_degree: int) -> Gaussians:
@@ -69,7 +70,8 @@ def _principal_angle(mask: np.ndarray) -> float:
 class InitResult:
     """Initial state. tissue/tools: Gaussians; tool_ids [K]; centers [K, 3] (metres); ref_frames [K];
     init_translation [K, T, 3] (metres); init_rotation [K, T, 3] (axis-angle, radians);
-    visible [K, T] bool (the tool has mask pixels in that training frame)."""
+    visible [K, T] bool (the tool has mask pixels in that training frame); tissue_pixels [N_tissue, 2]
+    pixel centre each tissue Gaussian was back-projected from, in frame tissue_frames [N_tissue]."""
 
     tissue: Gaussians
     tools: Gaussians
@@ -80,6 +82,8 @@ class InitResult:
     init_rotation: torch.Tensor
     visible: torch.Tensor
     n_disoccluded: int
+    tissue_pixels: np.ndarray
+    tissue_frames: np.ndarray
 
 
 def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: int = 0,
@@ -99,15 +103,18 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
     f0 = train[0]
     seen = prep.tissue[f0].copy()
     parts = [_points(sc.frames[f0], depth[f0], ids[f0], grid & prep.tissue[f0] & (depth[f0] > 0), K, stride, scale)]
+    part_frames = [f0]
     n_dis = 0
     for t in train[1:]:
         new = grid & prep.tissue[t] & ~seen & (depth[t] > 0)
         if new.any():
             parts.append(_points(sc.frames[t], depth[t], ids[t], new, K, stride, scale))
+            part_frames.append(t)
             n_dis += int(new.sum())
         seen |= prep.tissue[t]
-    cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
-    tissue = _gaussians(*cat, opacity, sh_degree)
+    cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+    tissue = _gaussians(*cat[:4], opacity, sh_degree)
+    tissue_frames = np.concatenate([np.full(len(p[0]), f, dtype=np.int64) for p, f in zip(parts, part_frames)])
 
     # tools
     tool_ids, centers, refs, tools = [], [], [], []
@@ -125,7 +132,7 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
         zmap = depth[ref] if prep.depth_metric else depth[ref] * tool_depth_factor
         sel = m & (zmap > 0)
         sub = sel & grid if (sel & grid).sum() >= MIN_TOOL_PIXELS else sel
-        pts, cols, oids, sigma = _points(sc.frames[ref], zmap, ids[ref], sub, K, stride, scale)
+        pts, cols, oids, sigma, _ = _points(sc.frames[ref], zmap, ids[ref], sub, K, stride, scale)
         tools.append(_gaussians(pts, cols, oids, sigma, opacity, sh_degree))
         c = pts.mean(0)
         tool_ids.append(oid)
@@ -151,4 +158,4 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
         tool_g = _gaussians(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,), np.int64), np.zeros((0,)), opacity, sh_degree)
     return InitResult(tissue, tool_g, tool_ids,
                       torch.as_tensor(np.array(centers).reshape(nk, 3), dtype=torch.float32), refs,
-                      trans[:nk], rot[:nk], visible[:nk], n_dis)
+                      trans[:nk], rot[:nk], visible[:nk], n_dis, cat[4], tissue_frames)

@@ -16,6 +16,8 @@ from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 __all__ = ["GaussianParams", "ATTRS"]
 
 ATTRS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+#: Integer labels every Gaussian carries through densification (children inherit their parent's).
+LABELS = ("object_ids", "track_ids")
 
 
 class GaussianParams:
@@ -24,11 +26,15 @@ class GaussianParams:
     Args:
         g: initial Gaussians (copied).
         lrs: learning rate per attribute name in ``ATTRS``.
+        track_ids: [N] int64 index of each Gaussian's point track (:mod:`endogsim.priors.tracks`), -1 for
+            none; default: none.
     """
 
-    def __init__(self, g: Gaussians, lrs: dict[str, float]) -> None:
+    def __init__(self, g: Gaussians, lrs: dict[str, float], track_ids: torch.Tensor | None = None) -> None:
         self.params = {a: nn.Parameter(getattr(g, a).detach().clone().float()) for a in ATTRS}
         self.object_ids = g.object_ids.detach().clone()
+        self.track_ids = (torch.full_like(self.object_ids, -1) if track_ids is None
+                          else torch.as_tensor(track_ids, dtype=torch.int64, device=self.object_ids.device).clone())
         self.optimizer = torch.optim.Adam(
             [{"params": [self.params[a]], "lr": lrs[a], "name": a} for a in ATTRS], lr=0.0, eps=1e-15)
         self.reset_stats()
@@ -70,9 +76,10 @@ class GaussianParams:
         self.grad_count[visible] += 1
 
     # ------------------------------------------------------------------ editing the set
-    def _edit(self, keep: torch.Tensor | None, extra: dict[str, torch.Tensor] | None, extra_ids: torch.Tensor | None) -> None:
-        """Keep the rows ``keep`` (bool [N] or None = all) and append ``extra`` rows; optimiser moments
-        follow (zeros for new rows)."""
+    def _edit(self, keep: torch.Tensor | None, extra: dict[str, torch.Tensor] | None,
+              extra_labels: dict[str, torch.Tensor] | None) -> None:
+        """Keep the rows ``keep`` (bool [N] or None = all) and append ``extra`` rows (with their ``LABELS``);
+        optimiser moments follow (zeros for new rows)."""
         for group in self.optimizer.param_groups:
             name = group["name"]
             old = group["params"][0]
@@ -90,10 +97,11 @@ class GaussianParams:
                 self.optimizer.state[new] = state
             group["params"][0] = new
             self.params[name] = new
-        ids = self.object_ids if keep is None else self.object_ids[keep]
-        if extra_ids is not None:
-            ids = torch.cat([ids, extra_ids])
-        self.object_ids = ids
+        for name in LABELS:
+            ids = getattr(self, name) if keep is None else getattr(self, name)[keep]
+            if extra_labels is not None:
+                ids = torch.cat([ids, extra_labels[name]])
+            setattr(self, name, ids)
 
     @torch.no_grad()
     def densify_and_prune(self, grad_threshold: float, percent_dense: float, extent: float, min_opacity: float,
@@ -117,7 +125,7 @@ class GaussianParams:
         split = cand & (max_scale > percent_dense * extent)
         p = self.params
         extra = {a: p[a][clone] for a in ATTRS}
-        extra_ids = self.object_ids[clone]
+        extra_labels = {n: getattr(self, n)[clone] for n in LABELS}
         if split.any():
             # two children per split Gaussian, sampled inside it, each 1.6x smaller (3DGS)
             s = scales[split].repeat(2, 1)
@@ -131,10 +139,10 @@ class GaussianParams:
                 "sh": p["sh"][split].repeat(2, 1, 1),
             }
             extra = {a: torch.cat([extra[a], child[a]]) for a in ATTRS}
-            extra_ids = torch.cat([extra_ids, self.object_ids[split].repeat(2)])
+            extra_labels = {n: torch.cat([extra_labels[n], getattr(self, n)[split].repeat(2)]) for n in LABELS}
         n_old = len(self)
-        self._edit(None, extra, extra_ids)
-        keep = torch.ones(len(self), dtype=torch.bool, device=extra_ids.device)
+        self._edit(None, extra, extra_labels)
+        keep = torch.ones(len(self), dtype=torch.bool, device=self.object_ids.device)
         keep[:n_old][split] = False
         opac = torch.sigmoid(self.params["opacity_logits"])
         big = self.params["log_scales"].exp().max(1).values > 0.2 * extent
@@ -147,13 +155,13 @@ class GaussianParams:
     # ------------------------------------------------------------------ checkpointing
     def state(self) -> dict:
         return {"params": {a: self.params[a].detach().clone() for a in ATTRS}, "object_ids": self.object_ids.clone(),
-                "optimizer": self.optimizer.state_dict(), "grad_accum": self.grad_accum.clone(),
+                "track_ids": self.track_ids.clone(), "optimizer": self.optimizer.state_dict(), "grad_accum": self.grad_accum.clone(),
                 "grad_count": self.grad_count.clone()}
 
     @staticmethod
     def from_state(state: dict, lrs: dict[str, float]) -> "GaussianParams":
         g = Gaussians(*(state["params"][a] for a in ATTRS), state["object_ids"])
-        gp = GaussianParams(g, lrs)
+        gp = GaussianParams(g, lrs, state.get("track_ids"))
         gp.optimizer.load_state_dict(state["optimizer"])
         gp.grad_accum = state["grad_accum"].clone()
         gp.grad_count = state["grad_count"].clone()
@@ -163,7 +171,7 @@ class GaussianParams:
         """Move parameters, moments and statistics to ``device`` (rebuilds the optimiser)."""
         st = self.state()
         st = {**st, "params": {a: v.to(device) for a, v in st["params"].items()},
-              "object_ids": st["object_ids"].to(device), "grad_accum": st["grad_accum"].to(device),
+              "object_ids": st["object_ids"].to(device), "track_ids": st["track_ids"].to(device), "grad_accum": st["grad_accum"].to(device),
               "grad_count": st["grad_count"].to(device)}
         lrs = {g["name"]: g["lr"] for g in self.optimizer.param_groups}
         gp = GaussianParams.from_state(st, lrs)

@@ -2,8 +2,13 @@
 
 Entry point: :func:`reconstruct` (data folder -> run folder, resumable). Stages:
 
-1. **coarse** (``coarse_fraction`` of the iterations): static tissue Gaussians fitted to random training
-   frames; tools already follow their per-frame rigid poses.
+0. **tracks** (:mod:`endogsim.priors.tracks`): every initial tissue Gaussian is tracked through the
+   training frames by chained optical flow (test frames are never read), and the deformation field is
+   fitted to those tracks alone for ``track_warmup_iters`` steps (no rendering). Endoscopic tissue moves
+   by tens of pixels over a clip, far beyond what a photometric gradient sees from an identity start.
+1. **coarse** (``coarse_fraction`` of the iterations, 0 by default: the warm-up gives the deformation
+   its start): static tissue Gaussians fitted to random training frames, as in Endo-4DGS; tools already
+   follow their per-frame rigid poses.
 2. **deformation**: the HexPlane field deforms the tissue per frame; densification (clone/split by
    view-space gradient) and pruning (low opacity) run in the first part of the run.
 
@@ -11,7 +16,8 @@ Losses per iteration (frame t drawn from a shuffled list of training frames):
 
 * tissue render vs frame t on tissue pixels only: L1 + ``lambda_dssim`` (1 - SSIM) (non-tissue pixels
   are replaced by the target before SSIM, so they carry no gradient); with metric depth,
-  ``lambda_depth`` * L1(depth / median depth); HexPlane regularisers in the deformation stage.
+  ``lambda_depth`` * L1(depth / median depth); in the deformation stage the HexPlane regularisers and the
+  track term (``lambda_track``, decaying: the photometric loss refines what the tracks start).
 * every ``tool_every`` iterations, the tool model: tools rendered alone and composited over the (detached)
   tissue render, L1 on tool pixels, plus ``lambda_tool_alpha`` * |alpha - tool mask| over the image
   (the tools must cover their mask and nothing else) and pose smoothness.
@@ -21,7 +27,8 @@ The tissue model never sees tool pixels, so instruments leave no smear in the ti
 A moving endoscope (``camera_motion``; on by default for data with neither poses nor depth) gets a
 learnt pose per frame (:class:`~endogsim.recon.camera_motion.CameraMotion`, started from tracked tissue
 features); every frame is rendered from its pose, test frames from poses interpolated between their
-training neighbours. With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`.
+training neighbours. With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`; the
+training seconds include the tracking and the warm-up.
 """
 
 from __future__ import annotations
@@ -149,7 +156,13 @@ class Trainer:
         self.extent = float((hi - lo).max())
         self.init_info = {"tissue_gaussians": len(ini.tissue), "disoccluded_gaussians": ini.n_disoccluded,
                           "tool_gaussians": len(ini.tools), "tool_ids": ini.tool_ids, "tool_ref_frames": ini.ref_frames}
-        self.tissue = GaussianParams(ini.tissue.to(self.device), self._gauss_lrs())
+        self.track_seeds = None
+        track_ids = None
+        if c.flow_method != "none":
+            # one track per initial tissue Gaussian, from the pixel it was back-projected from
+            self.track_seeds = {"pixels": torch.as_tensor(ini.tissue_pixels), "frames": torch.as_tensor(ini.tissue_frames)}
+            track_ids = torch.arange(len(ini.tissue))
+        self.tissue = GaussianParams(ini.tissue.to(self.device), self._gauss_lrs(), track_ids)
         self.tools = GaussianParams(ini.tools.to(self.device), self._gauss_lrs()) if len(ini.tools) else None
         t = self.times
         self.deformation = DeformationField(c.deformation, bounds, (float(t[0]), float(t[-1]) if len(t) > 1 else 1.0),
@@ -168,6 +181,11 @@ class Trainer:
             rot = estimate_camera_rotations(prep.scene.frames, prep.tissue, prep.scene.K)
             self.camera_motion = CameraMotion(len(t), torch.as_tensor(rot)).to(self.device)
         self._build_optimizers()
+        t0 = time.perf_counter()
+        self._build_tracks()
+        if self.tracks is not None and c.track_warmup_iters > 0:
+            self.init_info["track_warmup_loss"] = self._fit_tracks(c.track_warmup_iters)
+        self.elapsed += time.perf_counter() - t0  # tracking and the warm-up are part of training
 
     def state(self) -> dict:
         return {
@@ -181,6 +199,7 @@ class Trainer:
             "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
             "camera_opt": None if self.camera_opt is None else self.camera_opt.state_dict(),
             "tool_visible": self.tool_visible, "gen": self.gen.get_state(), "order": list(self._order),
+            "track_seeds": self.track_seeds,
             "torch_rng": torch.get_rng_state(),
         }
 
@@ -211,9 +230,79 @@ class Trainer:
         self.gen.set_state(st["gen"])
         self._order = list(st["order"])
         torch.set_rng_state(st["torch_rng"])
+        self.track_seeds = st.get("track_seeds")
+        self._build_tracks()  # deterministic: recomputed rather than stored
 
     def save_checkpoint(self) -> None:
         save_torch_atomic(self.state(), self.out / "checkpoint.pt")
+
+    # ------------------------------------------------------------------ point tracks
+    def _build_tracks(self) -> None:
+        """Track every seeded tissue point through the training frames (:func:`~endogsim.priors.tracks.track_points`)."""
+        self.tracks = None
+        if self.track_seeds is None:
+            return
+        from endogsim.priors.flow import get_flow_estimator
+        from endogsim.priors.tracks import track_points
+
+        c, prep = self.cfg, self.prep
+        est = get_flow_estimator(c.flow_method, c.flow_weights,
+                                 **({"device": str(self.device)} if c.flow_method == "raft" else {}))
+        tracks = track_points(prep.scene.frames, prep.tissue, self.track_seeds["pixels"].numpy(),
+                              self.track_seeds["frames"].numpy(), prep.train, est)
+        self.tracks = tracks.to(self.device)
+        self.init_info["tracked_share"] = round(float(tracks.valid[:, prep.train].float().mean()), 4)
+
+    def _project(self, points: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates [M, 2] of points [M, 3] seen from frames [M] (each point its own frame)."""
+        from endogsim.gaussians.camera import project_points
+
+        if self.camera_motion is None:
+            return self.camera.project(points)
+        return project_points(points, self.camera.K, self.camera_motion.transforms()[0][frames])
+
+    def _track_loss(self, frame: int, deformed_means: torch.Tensor | None = None) -> torch.Tensor | None:
+        """Mean Huber (1 px) distance between how far tracked Gaussians move on screen, from their canonical
+        position seen in their seed frame to their deformed position in ``frame``, and how far their tracks
+        move; None when no tracked Gaussian is valid in ``frame``.
+
+        A Gaussian is seeded at its pixel's back-projection, so this pins each canonical position to its
+        seed frame (and gives the deformation a gradient from the start, unlike a difference of two
+        deformed positions, which an untrained, time-independent field makes exactly zero).
+
+        ``deformed_means``: [N] tissue centres already deformed to ``frame`` (the render's), reused."""
+        tid = self.tissue.track_ids
+        ok = tid >= 0
+        ok[ok.clone()] = self.tracks.valid[tid[ok], frame]
+        idx = torch.nonzero(ok).squeeze(1)
+        if len(idx) == 0:
+            return None
+        if len(idx) > self.cfg.track_batch:
+            idx = idx[torch.randperm(len(idx), generator=self.gen)[: self.cfg.track_batch].to(idx.device)]
+        k = tid[idx]
+        seed = self.tracks.seed_frame[k]
+        if deformed_means is None:
+            at_t = self.deformation(self.tissue.gaussians().subset(idx), float(self.times[frame])).means
+        else:
+            at_t = deformed_means[idx]
+        moved = self._project(at_t, torch.full_like(seed, frame)) - self._project(self.tissue.params["means"][idx], seed)
+        target = self.tracks.positions[k, frame] - self.tracks.positions[k, seed]
+        return torch.nn.functional.huber_loss(moved, target, delta=1.0)
+
+    def _fit_tracks(self, iters: int) -> float:
+        """Fit the deformation field to the tracks alone (canonical Gaussians fixed); returns the last track
+        loss (pixels, Huber)."""
+        loss = None
+        for _ in range(iters):
+            loss = self._track_loss(self._next_frame())
+            if loss is None:
+                continue
+            loss.backward()
+            self.deform_opt.step()
+            self.deform_opt.zero_grad(set_to_none=True)
+            self.tissue.optimizer.zero_grad(set_to_none=True)
+        self._order = []
+        return float(loss.detach()) if loss is not None else float("nan")
 
     # ------------------------------------------------------------------ one iteration
     def view(self, frame: int) -> Camera:
@@ -265,7 +354,7 @@ class Trainer:
             g.means.retain_grad()
         out = render_gaussians(g, self.view(t), backend=c.backend)
         means2d = out.meta.get("means2d")
-        if means2d is not None and means2d.requires_grad and out.meta.get("backend") == "torch":
+        if means2d is not None and means2d.requires_grad and out.meta.get("backend") in ("torch", "warp"):
             means2d.retain_grad()
         loss = (1 - c.lambda_dssim) * _masked_l1(out.rgb, gt, m)
         if c.lambda_dssim > 0:
@@ -278,6 +367,10 @@ class Trainer:
                 loss = loss + c.lambda_depth * (out.depth[valid] - d[valid]).abs().mean() / d[valid].median()
         if fine:
             loss = loss + self.deformation.regularization(c.lambda_plane_tv, c.lambda_time_smooth, c.lambda_time_l1)
+            if self.tracks is not None and c.lambda_track > 0:
+                track = self._track_loss(t, g.means)
+                if track is not None:
+                    loss = loss + _lr_exp(f, c.lambda_track, c.lambda_track_final) * track
         loss.backward()
         self._accumulate_view_gradient(g, out, means2d)
         info = {"loss": float(loss.detach()), "frame": t, "n": len(self.tissue)}
@@ -472,12 +565,14 @@ class Trainer:
             "num_tool_gaussians": 0 if tools is None else len(tools),
             "resolution": [sc.width, sc.height], "device": str(self.device),
             "depth_source": self.prep.depth_source, "segmentation_source": self.prep.seg_source,
+            "track_source": self.cfg.flow_method if self.tracks is not None else "none",
             "camera_motion": self.camera_motion is not None,
             "tissue_pixel_fraction": float(self.prep.tissue[self.prep.test].mean()) if self.prep.test else None,
             "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
                          "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
                          "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
                          "tissue_pixel_fraction": "share of the test frames' pixels the masked metrics cover",
+                         "track_source": "optical flow of the point tracks (training frames only)",
                          "render": "tissue model only (tools are a separate model), except psnr_full"},
             "init": self.init_info, "history": self.history,
         }
