@@ -38,12 +38,27 @@ __all__ = ["TILE_SIZE", "TileBins", "bin_gaussians", "rasterize_warp"]
 #: fewer Gaussians that miss it; on a serial CPU the tests dominate (see ``endogsim bench render``).
 TILE_SIZE = 4
 
+
 @wp.func
 def gaussian_sigma(px: float, py: float, mean: wp.vec2, conic: wp.vec3):
     """The exponent 0.5 d^T Sigma2D^-1 d at pixel centre (px, py); d = pixel - mean."""
     dx = px - mean[0]
     dy = py - mean[1]
     return 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+
+
+@wp.func
+def pixel_tile_list(p: int, width: int, tiles_x: int, tile_size: int, tile_offsets: wp.array(dtype=wp.int32)):
+    """Pixel ``p``'s centre (px, py), its tile's list ``[begin, end)`` in ``gaussian_ids``, and the first
+    slot of its contributor list in ``contrib``: every pixel of a tile gets as many slots as the tile's
+    list is long, which bounds its contributors (the forward pass writes there, the backward pass reads)."""
+    x = p % width
+    y = p / width
+    tile = (y / tile_size) * tiles_x + x / tile_size
+    begin = tile_offsets[tile]
+    end = tile_offsets[tile + 1]
+    slot = begin * tile_size * tile_size + ((y % tile_size) * tile_size + x % tile_size) * (end - begin)
+    return float(x) + 0.5, float(y) + 0.5, begin, end, slot
 
 
 @wp.kernel
@@ -73,17 +88,9 @@ def composite_forward(
     p = wp.tid() * n_bands + band  # bands interleave pixels so that every band gets the same mix of work
     if p >= n_pixels:
         return
-    x = p % width
-    y = p / width
-    tile = (y / tile_size) * tiles_x + x / tile_size
-    px = float(x) + 0.5
-    py = float(y) + 0.5
+    px, py, begin, end, slot = pixel_tile_list(p, width, tiles_x, tile_size, tile_offsets)
     acc = background * 0.0
     T = float(1.0)
-    begin = tile_offsets[tile]
-    end = tile_offsets[tile + 1]
-    # this pixel's slot in contrib: as long as its tile's list, which bounds its contributors
-    slot = begin * tile_size * tile_size + ((y % tile_size) * tile_size + x % tile_size) * (end - begin)
     n = int(0)
     for k in range(begin, end):
         g = gaussian_ids[k]
@@ -133,13 +140,7 @@ def composite_backward(
     p = wp.tid() * n_bands + band
     if p >= n_pixels:
         return
-    x = p % width
-    y = p / width
-    tile = (y / tile_size) * tiles_x + x / tile_size
-    px = float(x) + 0.5
-    py = float(y) + 0.5
-    begin = tile_offsets[tile]
-    slot = begin * tile_size * tile_size + ((y % tile_size) * tile_size + x % tile_size) * (tile_offsets[tile + 1] - begin)
+    px, py, begin, end, slot = pixel_tile_list(p, width, tiles_x, tile_size, tile_offsets)
     T = final_transmittance[p]
     g_img = grad_image[p]
     g_alpha_px = grad_alpha[p]

@@ -170,16 +170,16 @@ def rasterize(
                                 features=features, background=bg, config=config)
 
     proj = project_gaussians(means, covars, opacities, K, viewmat, camera.width, camera.height, config)
-    channels = [rgb, proj.depths[:, None]] + ([features.to(dtype)] if features is not None else [])
+    channels = torch.cat([rgb, proj.depths[:, None]] + ([features.to(dtype)] if features is not None else []), 1)
     bg_all = torch.cat([bg, torch.zeros(1 + n_feat, device=device, dtype=dtype)])
     if which == "warp":
         bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, proj.valid, camera.width, camera.height)
-        image, alpha = rasterize_warp(proj.means2d, proj.conics, opacities, torch.cat(channels, 1), bg_all,
+        image, alpha = rasterize_warp(proj.means2d, proj.conics, opacities, channels, bg_all,
                                       bins, camera.width, camera.height, config)
         n_pairs = bins.n_pairs
     else:
         pairs = build_pairs(proj, opacities, camera.width, camera.height, config)
-        image, alpha = rasterize_torch(proj.means2d, proj.conics, opacities, torch.cat(channels, 1), bg_all,
+        image, alpha = rasterize_torch(proj.means2d, proj.conics, opacities, channels, bg_all,
                                        pairs, camera.width, camera.height, config)
         n_pairs = pairs.n_pairs
     depth = image[..., 3] / alpha.clamp_min(1e-10)

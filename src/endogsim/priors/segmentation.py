@@ -122,6 +122,7 @@ def motion_residual(frames: np.ndarray, t: int, exclude: np.ndarray, sigma_frac:
     """
     import cv2
 
+    from endogsim.evaluate.flow_metrics import warp_backward
     from endogsim.priors.flow import DISFlow
 
     est = estimator or DISFlow("medium")
@@ -129,16 +130,13 @@ def motion_residual(frames: np.ndarray, t: int, exclude: np.ndarray, sigma_frac:
     keep = (~cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)).astype(np.float32)
     sigma = sigma_frac * W
     weight = cv2.GaussianBlur(keep, (0, 0), sigma) + 1e-6
-    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     out = np.zeros((H, W), dtype=np.float32)
     for s in (t - 1, t + 1):
         if not 0 <= s < T:
             continue
         flow = est.estimate(frames[t], frames[s])
-        smooth = [cv2.GaussianBlur(flow[..., c] * keep, (0, 0), sigma) / weight for c in range(2)]
-        warped = cv2.remap(np.ascontiguousarray(frames[s], dtype=np.float32), gx + smooth[0], gy + smooth[1],
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        out = np.maximum(out, np.abs(warped - frames[t]).max(-1))
+        smooth = np.stack([cv2.GaussianBlur(flow[..., c] * keep, (0, 0), sigma) / weight for c in range(2)], -1)
+        out = np.maximum(out, np.abs(warp_backward(frames[s], smooth) - frames[t]).max(-1))
     return out
 
 

@@ -24,6 +24,8 @@ __all__ = ["HexPlane", "PLANE_AXES"]
 
 #: Axis pairs of the six planes; 0, 1, 2 = x, y, z and 3 = t.
 PLANE_AXES = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
+#: PLANE_AXES as the two [6] int32 index vectors (first axes, second axes) the Warp sampler takes.
+_PLANE_AXES_INT32 = tuple(torch.tensor([ax[i] for ax in PLANE_AXES], dtype=torch.int32) for i in (0, 1))
 
 
 class HexPlane(nn.Module):
@@ -82,8 +84,7 @@ class HexPlane(nn.Module):
         if backend == "warp" or (backend == "auto" and xyz.device.type == "cpu" and xyz.dtype == torch.float32):
             from endogsim.recon.hexplane_warp import hexplane_features_warp
 
-            axes = tuple(torch.tensor([ax[i] for ax in PLANE_AXES], dtype=torch.int32) for i in (0, 1))
-            return hexplane_features_warp(coords, list(self._planes(None)), axes)
+            return hexplane_features_warp(coords, list(self._planes(None)), _PLANE_AXES_INT32)
         feats = []
         for planes in self.levels:
             f = None

@@ -42,18 +42,24 @@ def _corner_index(x: float, size: int):
 
 
 @wp.func
-def _sample(planes: wp.array(dtype=Any), offset: int, ra: int, rb: int, u: float, v: float):
+def _bilinear_cells(offset: int, ra: int, rb: int, u: float, v: float):
+    """The four cells around (u, v) on a plane ``ra`` wide and ``rb`` high whose first cell is ``offset``:
+    indices i00, i01 (next along a), i10 (next along b), i11; the weights wx, wy of the upper corners; and
+    du/dv, the derivatives of the cell coordinates w.r.t. u and v."""
     x, dxu = _cell_coordinate(u, ra)
     y, dyv = _cell_coordinate(v, rb)
     ix, wx = _corner_index(x, ra)
     iy, wy = _corner_index(y, rb)
     ix1 = wp.min(ix + 1, ra - 1)
     iy1 = wp.min(iy + 1, rb - 1)
-    c00 = planes[offset + iy * ra + ix]
-    c01 = planes[offset + iy * ra + ix1]
-    c10 = planes[offset + iy1 * ra + ix]
-    c11 = planes[offset + iy1 * ra + ix1]
-    return (1.0 - wy) * ((1.0 - wx) * c00 + wx * c01) + wy * ((1.0 - wx) * c10 + wx * c11)
+    return (offset + iy * ra + ix, offset + iy * ra + ix1, offset + iy1 * ra + ix, offset + iy1 * ra + ix1,
+            wx, wy, dxu, dyv)
+
+
+@wp.func
+def _sample(planes: wp.array(dtype=Any), offset: int, ra: int, rb: int, u: float, v: float):
+    i00, i01, i10, i11, wx, wy, dxu, dyv = _bilinear_cells(offset, ra, rb, u, v)
+    return (1.0 - wy) * ((1.0 - wx) * planes[i00] + wx * planes[i01]) + wy * ((1.0 - wx) * planes[i10] + wx * planes[i11])
 
 
 @wp.kernel
@@ -132,23 +138,16 @@ def hexplane_backward(
                 others = wp.cw_mul(p012, wp.cw_mul(s3, s4))
             gs = wp.cw_mul(g, others)
             p = base + j
-            ra = plane_ra[p]
-            rb = plane_rb[p]
-            off = plane_offset[p]
-            x, dxu = _cell_coordinate(coords[n, axis_a[j]], ra)
-            y, dyv = _cell_coordinate(coords[n, axis_b[j]], rb)
-            ix, wx = _corner_index(x, ra)
-            iy, wy = _corner_index(y, rb)
-            ix1 = wp.min(ix + 1, ra - 1)
-            iy1 = wp.min(iy + 1, rb - 1)
-            wp.atomic_add(grad_planes, off + iy * ra + ix, ((1.0 - wy) * (1.0 - wx)) * gs)
-            wp.atomic_add(grad_planes, off + iy * ra + ix1, ((1.0 - wy) * wx) * gs)
-            wp.atomic_add(grad_planes, off + iy1 * ra + ix, (wy * (1.0 - wx)) * gs)
-            wp.atomic_add(grad_planes, off + iy1 * ra + ix1, (wy * wx) * gs)
-            c00 = planes[off + iy * ra + ix]
-            c01 = planes[off + iy * ra + ix1]
-            c10 = planes[off + iy1 * ra + ix]
-            c11 = planes[off + iy1 * ra + ix1]
+            i00, i01, i10, i11, wx, wy, dxu, dyv = _bilinear_cells(plane_offset[p], plane_ra[p], plane_rb[p],
+                                                                   coords[n, axis_a[j]], coords[n, axis_b[j]])
+            wp.atomic_add(grad_planes, i00, ((1.0 - wy) * (1.0 - wx)) * gs)
+            wp.atomic_add(grad_planes, i01, ((1.0 - wy) * wx) * gs)
+            wp.atomic_add(grad_planes, i10, (wy * (1.0 - wx)) * gs)
+            wp.atomic_add(grad_planes, i11, (wy * wx) * gs)
+            c00 = planes[i00]
+            c01 = planes[i01]
+            c10 = planes[i10]
+            c11 = planes[i11]
             ds_dx = (1.0 - wy) * (c01 - c00) + wy * (c11 - c10)
             ds_dy = (1.0 - wx) * (c10 - c00) + wx * (c11 - c01)
             grad_coords[n, axis_a[j]] = grad_coords[n, axis_a[j]] + wp.dot(gs, ds_dx) * dxu
