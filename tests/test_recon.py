@@ -376,8 +376,10 @@ def test_export_reimport_gives_identical_renders(fast_run):
     assert np.abs(png - again.numpy()).max() <= 1.0 / 255 + 1e-6
 
 
-def test_resume_after_interruption_continues_from_checkpoint(synthetic, tmp_path):
-    cfg = ReconConfig(**{**FAST, "iters": 24, "checkpoint_every": 5, "densify_every": 8})
+@pytest.mark.parametrize("camera_motion", ["off", "on"])  # "on": camera poses and exposures resume too
+def test_resume_after_interruption_continues_from_checkpoint(synthetic, tmp_path, camera_motion):
+    cfg = ReconConfig(**{**FAST, "iters": 24, "checkpoint_every": 5, "densify_every": 8,
+                         "camera_motion": camera_motion})
     ref = reconstruct(synthetic, tmp_path / "ref", cfg, resume=False)
     with pytest.raises(Interrupted):
         reconstruct(synthetic, tmp_path / "cut", cfg, resume=False, stop_after=13)
@@ -553,3 +555,104 @@ def test_time_budget_drives_the_schedule(synthetic, tmp_path):
     lr = {g["name"]: g["lr"] for g in tr.tissue.optimizer.param_groups}["means"]
     assert lr == pytest.approx(cfg.lr_means_final * tr.extent)
     assert all(g["lr"] == pytest.approx(0.1 * cfg.lr_grid) for g in tr.deform_opt.param_groups if g["name"] == "grid")
+
+
+def test_camera_rotation_prior_reads_only_the_given_frames():
+    from endogsim.priors.camera import estimate_camera_rotations
+
+    frames = _panning_frames(0.02, 0.0, n=5, scale=4.0)
+    K = camera().scaled(4.0).K.numpy()
+    mask = np.ones(frames.shape[:3], bool)
+    ref = estimate_camera_rotations(frames, mask, K, [0, 2, 3, 4])
+    frames[1] = np.random.default_rng(0).random(frames[1].shape)  # a held-out frame: never read
+    rot = estimate_camera_rotations(frames, mask, K, [0, 2, 3, 4])
+    assert np.array_equal(rot, ref)
+    assert np.allclose(rot[1], 0.5 * rot[2]) and rot[4, 1] == pytest.approx(4 * 0.02, rel=0.2)
+
+
+def test_moving_camera_init_seeds_the_tissue_entering_the_view():
+    """With flows and camera rotations, only the strip that pans into view gets new points, and each new
+    point sits in the world where its frame's camera saw it."""
+    from endogsim.io.scene import ObjectLabel, Scene
+    from endogsim.priors.tracks import consecutive_flows
+    from endogsim.recon.data import PreparedScene
+
+    yaw = 0.04  # 4.8 px per frame at f = 120 px
+    frames = _panning_frames(yaw, 0.0, n=4, scale=2.0).astype(np.float32)
+    cam = camera().scaled(2.0)
+    T, h, w = frames.shape[:3]
+    depth = np.full((T, h, w), Z_TISSUE, np.float32)
+    ids = np.zeros((T, h, w), np.int32)
+    scene = Scene(frames, np.arange(T, dtype=np.float64), cam.K.numpy().astype(np.float64), None, ids,
+                  {0: ObjectLabel(0, "tissue", False, "tissue")})
+    tissue = np.ones((T, h, w), bool)
+    prep = PreparedScene(scene, depth, "test", False, "test", tissue, ~tissue, [0, 1, 2, 3], [])
+    fixed = initial_gaussians(prep, 2)
+    assert fixed.n_disoccluded == 0  # pixel-space coverage: every pixel was tissue in frame 0
+    rot = np.array([[0.0, yaw * i, 0.0] for i in range(T)], np.float32)
+    moving = initial_gaussians(prep, 2, flows=consecutive_flows(frames, [0, 1, 2, 3])[1], rotations=rot)
+    new = moving.tissue_frames > 0
+    # about 4.8 px per frame enter at the left (the view pans right, the image moves left to right)
+    cols = moving.tissue_pixels[new, 0]
+    assert 3 * 2 * 48 <= new.sum() <= 3 * 4 * 48, int(new.sum())  # 2 to 4 grid columns a frame
+    assert cols.max() < 10, cols.max()
+    # each new point, seen through its frame's rotation, projects back onto its pixel
+    from endogsim.gaussians.camera import project_points
+    from endogsim.recon.tools import axis_angle_to_quat
+
+    f = torch.as_tensor(moving.tissue_frames[new])
+    views = torch.eye(4).repeat(T, 1, 1)
+    views[:, :3, :3] = quat_to_rotmat(axis_angle_to_quat(torch.as_tensor(rot)))
+    uv = project_points(moving.tissue.means[torch.as_tensor(new)], cam.K, views[f])
+    assert torch.allclose(uv, torch.as_tensor(moving.tissue_pixels[new]), atol=1e-3)
+
+
+def test_frame_exposure_holds_frame0_and_fills_untrained_frames():
+    from endogsim.recon.exposure import FrameExposure
+
+    ex = FrameExposure(4)
+    rgb = torch.full((2, 2, 3), 0.5)
+    target = torch.tensor([0.6, 0.5, 0.4])
+    for _ in range(200):
+        loss = sum((ex(rgb, t) - target).abs().mean() for t in (0, 2))
+        loss.backward()
+        with torch.no_grad():
+            for p in ex.parameters():
+                p -= 0.01 * p.grad.sign()
+                p.grad = None
+    assert torch.equal(ex.log_gain[0, 0], torch.zeros(3)) and torch.equal(ex.bias[0, 0], torch.zeros(3))
+    assert torch.allclose(ex(rgb, 2)[0, 0], target, atol=0.02)
+    ex.interpolate_missing(torch.tensor([True, False, True, False]))
+    assert torch.allclose(ex.bias[0, 1], 0.5 * ex.bias[0, 2]) and torch.equal(ex.bias[0, 3], ex.bias[0, 2])
+
+
+def test_repeated_frames_follow_the_cadence_and_share_their_time():
+    from endogsim.recon.data import repeated_frames, split_frames, video_times
+
+    # a 25 fps video converted to 30 fps: every 6th frame repeats the one before (26 distinct of 30)
+    rng = np.random.default_rng(0)
+    distinct = rng.random((26, 4, 5, 3)).astype(np.float32)
+    src = [0]
+    for i in range(1, 30):
+        src.append(src[-1] if i % 6 == 0 else src[-1] + 1)
+    frames = distinct[src]
+    train, test = split_frames(30)
+    assert 17 in test  # frame 18 repeats the held-out frame 17: found from the cadence, not by reading 17
+    frames_hidden = frames.copy()
+    frames_hidden[test] = rng.random(frames[test].shape)
+    rep = repeated_frames(frames_hidden, train)
+    assert np.nonzero(rep)[0].tolist() == [6, 12, 18, 24]
+    t = video_times(np.arange(30) / 30.0, rep)
+    assert t[5] == t[6] and t[17] == t[18] and t[0] == 0 and t[-1] == pytest.approx(29 / 30)
+    assert np.allclose(np.diff(t)[~rep[1:]], 29 / 30 / 25)
+    # a pair of training frames that differs breaks the cadence: only the repeats seen are kept
+    frames_hidden[13:] = frames_hidden[12:-1].copy()
+    frames_hidden[13] += 0.1
+    rep = repeated_frames(frames_hidden, [i for i in range(30) if i not in (17, 25)])
+    assert not rep[18] and rep[6]
+    # a pose of a held-out frame is interpolated in those times
+    m = ToolMotion([1], torch.zeros(1, 3), 4)
+    with torch.no_grad():
+        m.translation[0, :, 0] = torch.tensor([0.0, 9.0, 1.0, 1.0])
+    m.interpolate_missing(torch.tensor([True, False, True, True]), torch.tensor([0.0, 1.0, 1.0, 2.0]))
+    assert float(m.translation[0, 1, 0].detach()) == pytest.approx(1.0)

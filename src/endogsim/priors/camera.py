@@ -53,23 +53,29 @@ def _relative_rotation(a: np.ndarray, b: np.ndarray, mask: np.ndarray, K: np.nda
     return np.array([-math.atan(dv / K[1, 1]), math.atan(du / K[0, 0]), roll])
 
 
-def estimate_camera_rotations(frames: np.ndarray, tissue: np.ndarray, K: np.ndarray) -> np.ndarray:
+def estimate_camera_rotations(frames: np.ndarray, tissue: np.ndarray, K: np.ndarray,
+                              frames_used: list[int] | None = None) -> np.ndarray:
     """World->camera rotation of every frame relative to frame 0, as axis-angle vectors.
 
     Args:
         frames: [T, H, W, 3] RGB, float in [0, 1] or uint8.
         tissue: [T, H, W] bool, pixels where features may be tracked (tissue, not tools or border).
         K: [3, 3] intrinsics (pixels).
+        frames_used: increasing frame indices to read (the training frames; default all). Rotations are
+            chained between consecutive entries; the other frames are interpolated linearly between
+            their neighbours (constant beyond the ends), so held-out frames are never read.
     Returns:
-        [T, 3] float32 axis-angle (radians); row 0 is zero. A pair of frames where tracking fails (too
-        few features) is taken as no motion.
+        [T, 3] float32 axis-angle (radians); frame ``frames_used[0]`` is zero. A pair of frames where
+        tracking fails (too few features) is taken as no motion.
     """
     T = frames.shape[0]
-    out = np.zeros((T, 3), dtype=np.float32)
-    prev = _grey(frames[0])
-    for t in range(1, T):
-        cur = _grey(frames[t])
-        rel = _relative_rotation(prev, cur, tissue[t - 1], np.asarray(K, dtype=np.float64))
-        out[t] = out[t - 1] + (rel if rel is not None else 0.0)
+    used = list(range(T)) if frames_used is None else [int(f) for f in frames_used]
+    chained = np.zeros((len(used), 3), dtype=np.float64)
+    prev = _grey(frames[used[0]])
+    for i in range(1, len(used)):
+        cur = _grey(frames[used[i]])
+        rel = _relative_rotation(prev, cur, tissue[used[i - 1]], np.asarray(K, dtype=np.float64))
+        chained[i] = chained[i - 1] + (rel if rel is not None else 0.0)
         prev = cur
-    return out
+    out = np.stack([np.interp(np.arange(T), used, chained[:, k]) for k in range(3)], 1)
+    return out.astype(np.float32)

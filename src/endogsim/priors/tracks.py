@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from endogsim.errors import DataError
 
-__all__ = ["PointTracks", "track_points", "flow_lookup"]
+__all__ = ["PointTracks", "track_points", "flow_lookup", "consecutive_flows"]
 
 
 @dataclass
@@ -77,8 +77,26 @@ def _step(points: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, allowed: np.ndar
     return moved, consistent & inside & allowed[yi, xi]
 
 
+def consecutive_flows(frames: np.ndarray, frames_used: list[int], estimator=None
+                      ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Forward and backward optical flow between consecutive entries of ``frames_used``.
+
+    Returns:
+        (fwd, bwd), each a list of len(frames_used) - 1 fields [H, W, 2] (pixels): ``fwd[i]`` moves a pixel
+        of frame ``frames_used[i]`` to frame ``frames_used[i + 1]``, ``bwd[i]`` the reverse.
+    """
+    from endogsim.priors.flow import DISFlow
+
+    est = estimator or DISFlow("medium")
+    used = list(frames_used)
+    fwd = [est.estimate(frames[a], frames[b]) for a, b in zip(used[:-1], used[1:])]
+    bwd = [est.estimate(frames[b], frames[a]) for a, b in zip(used[:-1], used[1:])]
+    return fwd, bwd
+
+
 def track_points(frames: np.ndarray, allowed: np.ndarray, seeds: np.ndarray, seed_frames: np.ndarray,
-                 frames_used: list[int], estimator=None) -> PointTracks:
+                 frames_used: list[int], estimator=None,
+                 flows: tuple[list[np.ndarray], list[np.ndarray]] | None = None) -> PointTracks:
     """Track seeded points through ``frames_used`` by chaining optical flow.
 
     Args:
@@ -89,12 +107,10 @@ def track_points(frames: np.ndarray, allowed: np.ndarray, seeds: np.ndarray, see
         frames_used: increasing frame indices to track through (the training frames); the flow is computed
             between consecutive entries only.
         estimator: a :class:`~endogsim.priors.flow.FlowEstimator` (default: DIS, offline).
+        flows: the :func:`consecutive_flows` of ``frames_used`` when already computed (``estimator`` unused).
     Returns:
         :class:`PointTracks` over all T frames (frames not in ``frames_used`` are never valid).
     """
-    from endogsim.priors.flow import DISFlow
-
-    est = estimator or DISFlow("medium")
     T = frames.shape[0]
     used = list(frames_used)
     if sorted(set(used)) != used:
@@ -109,8 +125,7 @@ def track_points(frames: np.ndarray, allowed: np.ndarray, seeds: np.ndarray, see
     valid = np.zeros((K, T), dtype=bool)
     positions[np.arange(K), seed_frames] = seeds
     valid[np.arange(K), seed_frames] = True
-    fwd = [est.estimate(frames[a], frames[b]) for a, b in zip(used[:-1], used[1:])]
-    bwd = [est.estimate(frames[b], frames[a]) for a, b in zip(used[:-1], used[1:])]
+    fwd, bwd = flows if flows is not None else consecutive_flows(frames, used, estimator)
     seed_idx = np.array([pos_in_list[int(f)] for f in seed_frames], dtype=np.int64)
     # Forward sweep: a track is live at list position i when seeded at or before i and not yet lost.
     live = np.zeros(K, dtype=bool)

@@ -15,10 +15,11 @@ import torch
 from endogsim.gaussians.camera import Camera
 from endogsim.recon.tools import ToolMotion
 
-__all__ = ["CameraMotion"]
+__all__ = ["CameraMotion", "hold_frame0"]
 
 
-def _hold_frame0(grad: torch.Tensor) -> torch.Tensor:
+def hold_frame0(grad: torch.Tensor) -> torch.Tensor:
+    """Gradient hook of a per-frame parameter [K, T, C]: frame 0 never moves (it fixes the gauge)."""
     grad = grad.clone()
     grad[:, 0] = 0
     return grad
@@ -39,8 +40,8 @@ class CameraMotion(ToolMotion):
             with torch.no_grad():
                 self.rotation[0] = torch.as_tensor(init_rotation, dtype=torch.float32)
                 self.rotation[0, 0] = 0
-        self.rotation.register_hook(_hold_frame0)
-        self.translation.register_hook(_hold_frame0)
+        self.rotation.register_hook(hold_frame0)
+        self.translation.register_hook(hold_frame0)
 
     def viewmat(self, frame: int) -> torch.Tensor:
         """[4, 4] world->camera transform of ``frame`` (differentiable)."""

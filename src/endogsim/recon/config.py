@@ -46,6 +46,8 @@ class ReconConfig:
             ("off"), or "auto": on when the dataset gives neither camera poses nor depth (CholecSeg8K,
             plain videos), off otherwise (EndoNeRF's fixed endoscope, procedural scenes). Poses start
             from :func:`endogsim.priors.camera.estimate_camera_rotations`.
+        exposure: learn a per-frame colour gain and bias (:mod:`endogsim.recon.exposure`: the endoscope's
+            light moves with it) "on", "off", or "auto": on exactly when the camera moves.
         flow_method / flow_weights: optical flow for the point tracks (:mod:`endogsim.priors.flow`: "dis",
             offline, or "raft" with a local weights file); "none" trains without tracks.
     Schedule:
@@ -84,7 +86,8 @@ class ReconConfig:
         lr_means, lr_means_final: per unit extent, decayed exponentially over the run.
         lr_sh, lr_opacity, lr_scales, lr_quats: 3DGS values.
         lr_grid, lr_mlp: HexPlane planes and MLP heads (Endo-4DGS values), decayed by 10x.
-        lr_tool_rot (rad), lr_tool_trans (per unit extent); lr_camera_rot, lr_camera_trans likewise.
+        lr_tool_rot (rad), lr_tool_trans (per unit extent); lr_camera_rot, lr_camera_trans likewise;
+        lr_exposure: per-frame log gain and bias.
     Densification (3DGS):
         densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
         (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
@@ -104,6 +107,7 @@ class ReconConfig:
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
     camera_motion: str = "auto"
+    exposure: str = "auto"
     flow_method: str = "dis"
     flow_weights: str | None = None
 
@@ -144,6 +148,7 @@ class ReconConfig:
     lr_tool_trans: float = 2e-3
     lr_camera_rot: float = 5e-4
     lr_camera_trans: float = 5e-4
+    lr_exposure: float = 1e-3
 
     densify_from: float = 0.1
     densify_until: float = 0.6
@@ -178,8 +183,9 @@ class ReconConfig:
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
         if self.flow_method not in ("dis", "raft", "none"):
             raise DataError(f"flow_method {self.flow_method!r} must be 'dis', 'raft' or 'none'")
-        if self.camera_motion not in ("auto", "on", "off"):
-            raise DataError(f"camera_motion {self.camera_motion!r} must be 'auto', 'on' or 'off'")
+        for name in ("camera_motion", "exposure"):
+            if getattr(self, name) not in ("auto", "on", "off"):
+                raise DataError(f"{name} {getattr(self, name)!r} must be 'auto', 'on' or 'off'")
         if self.device not in ("auto", "cpu", "cuda"):
             raise DataError(f"device {self.device!r} must be 'auto', 'cpu' or 'cuda'")
         return self

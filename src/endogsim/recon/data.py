@@ -13,6 +13,12 @@ per metre) and its ``object_masks/`` (the scene's own ids and names) are used wh
 reconstructed object ids match the generator's.
 
 Train/test split (EndoNeRF protocol): frame i is a test frame when (i - 1) % 8 == 0; the rest train.
+
+Frame times: videos converted to a higher frame rate repeat frames (CholecSeg8K's clip repeats every 6th
+frame: 25 -> 30 fps). :func:`repeated_frames` finds the repeats among consecutive training frames and,
+when they follow a regular cadence, extends it to the frames in between (a held-out frame is never
+read); :func:`video_times` then gives a repeat the time of the frame it repeats, so the deformation
+field and the interpolated poses of held-out frames follow the scene's time, not the frame index.
 """
 
 from __future__ import annotations
@@ -26,7 +32,10 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.io.scene import ObjectLabel, Scene
 
-__all__ = ["PreparedScene", "prepare_scene", "split_frames", "load_recon_scene"]
+__all__ = ["PreparedScene", "prepare_scene", "split_frames", "load_recon_scene", "repeated_frames", "video_times"]
+
+#: mean absolute difference (RGB in [0, 1]) under which two consecutive frames are the same picture
+REPEAT_THRESHOLD = 0.5 / 255
 
 
 def split_frames(num_frames: int) -> tuple[list[int], list[int]]:
@@ -36,6 +45,44 @@ def split_frames(num_frames: int) -> tuple[list[int], list[int]]:
     if not train:
         raise DataError(f"{num_frames} frame(s) leave no training frame")
     return train, test
+
+
+def repeated_frames(frames: np.ndarray, frames_used: list[int], threshold: float = REPEAT_THRESHOLD) -> np.ndarray:
+    """Which frames repeat their predecessor, from the frames in ``frames_used`` only.
+
+    A frame i repeats i - 1 when both are in ``frames_used`` and differ by less than ``threshold`` (mean
+    absolute difference). When two or more repeats share a cadence (every P-th frame, same phase) and no
+    pair of used frames contradicts it, the frames of that cadence whose pair includes an unused frame
+    are marked too.
+
+    Args:
+        frames: [T, H, W, 3] RGB in [0, 1].
+        frames_used: frame indices that may be read (the training frames).
+    Returns:
+        [T] bool, True where frame i shows the same instant as frame i - 1.
+    """
+    T = frames.shape[0]
+    used = set(int(f) for f in frames_used)
+    pairs = [i for i in range(1, T) if i in used and i - 1 in used]
+    same = {i: float(np.abs(frames[i] - frames[i - 1]).mean()) < threshold for i in pairs}
+    out = np.zeros(T, dtype=bool)
+    found = [i for i, s in same.items() if s]
+    out[found] = True
+    if len(found) >= 2:
+        period = int(np.gcd.reduce(np.diff(found)))
+        cadence = [i for i in range(found[0] % period or period, T, period)] if period > 1 else []
+        if cadence and all(same.get(i, True) for i in cadence):
+            out[cadence] = True
+    return out
+
+
+def video_times(times: np.ndarray, repeated: np.ndarray) -> np.ndarray:
+    """Frame times [T] (seconds) with every repeated frame at the time of the frame it repeats and the
+    distinct frames evenly spaced over the same span as ``times`` [T]."""
+    steps = np.concatenate([[0.0], (~repeated[1:]).astype(np.float64)])
+    if steps.sum() == 0:
+        return np.asarray(times, dtype=np.float64).copy()
+    return times[0] + np.cumsum(steps) * (times[-1] - times[0]) / steps.sum()
 
 
 @dataclass
@@ -49,6 +96,9 @@ class PreparedScene:
         seg_source: where the masks came from ("dataset", "sam2", "fallback").
         tissue: [T, H, W] bool tissue pixels.  tool: [T, H, W] bool instrument pixels.
         train, test: frame indices.
+        times: [T] float64 frame times (seconds) for the model, :func:`video_times` of the scene's
+            (None: the scene's own).
+        repeated: [T] bool, frames that repeat their predecessor (:func:`repeated_frames`).
     """
 
     scene: Scene
@@ -60,6 +110,8 @@ class PreparedScene:
     tool: np.ndarray
     train: list[int]
     test: list[int]
+    times: np.ndarray | None = None
+    repeated: np.ndarray | None = None
 
     @property
     def tool_ids(self) -> list[int]:
@@ -130,4 +182,6 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     tool = np.isin(seg.masks, tool_ids)
     tissue = np.isin(seg.masks, tissue_ids)
     train, test = split_frames(scene.num_frames)
-    return PreparedScene(scene, dp.depth, dp.source, dp.metric, seg.source, tissue, tool, train, test)
+    repeated = repeated_frames(scene.frames, train)
+    return PreparedScene(scene, dp.depth, dp.source, dp.metric, seg.source, tissue, tool, train, test,
+                         video_times(scene.times, repeated), repeated)

@@ -3,7 +3,11 @@
 * Tissue: pixels of the first training frame on a ``stride`` grid, back-projected with their depth and
   the intrinsics K, coloured by the pixel. Then, for every later training frame, grid pixels that are
   tissue there but were never tissue before (hidden by a tool, or outside the labels, in all earlier
-  frames) are back-projected from that frame: the tissue a tool uncovers gets Gaussians too.
+  frames) are back-projected from that frame: the tissue a tool uncovers gets Gaussians too. With a
+  fixed endoscope "before" is the same pixel; with a moving one (``flows`` and ``rotations`` given) the
+  seen-so-far mask is carried from frame to frame by the backward optical flow, so the tissue that
+  enters the field of view at the border counts as new as well, and new points are rotated from their
+  frame's camera into the world (frame 0's camera) by the initial camera rotation.
 * Tools: each tool object starts from its first training frame where it covers enough pixels (its
   *reference* frame), back-projected likewise; with non-metric depth it is placed at
   ``tool_depth_factor`` times the tissue depth (instruments are between the camera and the tissue).
@@ -24,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from endogsim.gaussians.model import Gaussians
+from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 
 __all__ = ["backproject", "InitResult", "initial_gaussians"]
 
@@ -52,6 +56,30 @@ def _points(frame: np.ndarray, depth: np.ndarray, ids: np.ndarray, select: np.nd
     pts = backproject(u, v, z, K)
     sigma = scale * stride * z / K[0, 0]
     return pts, frame[v, u], ids[v, u], sigma, np.stack([u + 0.5, v + 0.5], 1).astype(np.float32)
+
+
+def _carry_mask(seen: np.ndarray, bwd: np.ndarray) -> np.ndarray:
+    """``seen`` [H, W] bool of a frame, moved into the next frame by ``bwd`` [H, W, 2], the flow from the
+    next frame back to this one (a pixel p of the next frame was at p + bwd(p)); outside the image: unseen."""
+    import cv2
+
+    H, W = seen.shape
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    x, y = xs + bwd[..., 0], ys + bwd[..., 1]
+    # flow that ends less than a pixel outside is noise at the edge, not tissue entering the view
+    x = np.where((x > -1.5) & (x < W + 0.5), np.clip(x, 0, W - 1), x)
+    y = np.where((y > -1.5) & (y < H + 0.5), np.clip(y, 0, H - 1), y)
+    moved = cv2.remap(seen.astype(np.uint8), x, y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return moved > 0
+
+
+def _camera_to_world(pts: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Points [M, 3] in the camera of a frame whose world->camera rotation is the axis-angle ``rotation``
+    [3] (radians), in world coordinates (x_world = R^T x_cam)."""
+    from endogsim.recon.tools import axis_angle_to_quat
+
+    R = quat_to_rotmat(axis_angle_to_quat(torch.as_tensor(rotation, dtype=torch.float32))[None])[0].numpy()
+    return pts @ R
 
 
 def _gaussians(pts, cols, ids, sigma, opacity: float, sh_degree: int) -> Gaussians:
@@ -87,9 +115,19 @@ class InitResult:
 
 
 def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: int = 0,
-                      tool_depth_factor: float = 0.85, scale: float = 0.6) -> InitResult:
-    """Initial tissue and tool Gaussians of a :class:`~endogsim.recon.data.PreparedScene`; ``scale``:
-    standard deviation in units of the grid spacing ``stride``."""
+                      tool_depth_factor: float = 0.85, scale: float = 0.6,
+                      flows: list[np.ndarray] | None = None, rotations: np.ndarray | None = None) -> InitResult:
+    """Initial tissue and tool Gaussians of a :class:`~endogsim.recon.data.PreparedScene`.
+
+    Args:
+        prep: the prepared scene.
+        stride: back-project every ``stride``-th pixel in x and y.
+        scale: initial standard deviation in units of the grid spacing.
+        flows: for a moving endoscope, the backward flows between consecutive training frames
+            (``bwd`` of :func:`~endogsim.priors.tracks.consecutive_flows`), which carry the seen-so-far mask.
+        rotations: for a moving endoscope, [T, 3] initial world->camera rotations (axis-angle, radians;
+            :func:`~endogsim.priors.camera.estimate_camera_rotations`) placing later frames' points.
+    """
     sc = prep.scene
     T, H, W = sc.num_frames, sc.height, sc.width
     K = sc.K
@@ -105,10 +143,15 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
     parts = [_points(sc.frames[f0], depth[f0], ids[f0], grid & prep.tissue[f0] & (depth[f0] > 0), K, stride, scale)]
     part_frames = [f0]
     n_dis = 0
-    for t in train[1:]:
+    for i, t in enumerate(train[1:]):
+        if flows is not None:
+            seen = _carry_mask(seen, flows[i])
         new = grid & prep.tissue[t] & ~seen & (depth[t] > 0)
         if new.any():
-            parts.append(_points(sc.frames[t], depth[t], ids[t], new, K, stride, scale))
+            pts, *rest = _points(sc.frames[t], depth[t], ids[t], new, K, stride, scale)
+            if rotations is not None:
+                pts = _camera_to_world(pts, rotations[t])
+            parts.append((pts, *rest))
             part_frames.append(t)
             n_dis += int(new.sum())
         seen |= prep.tissue[t]

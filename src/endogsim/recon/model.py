@@ -10,8 +10,8 @@ Run-folder files (all written atomically):
 ``canonical.ply``          canonical Gaussians, 3DGS layout + ``object_id`` (tissue then tools)
 ``frame0.ply``             the Gaussians at frame 0 (deformed tissue, tools at their frame-0 pose)
 ``deformation.pt``         torch file: the deformation field (architecture + state dict), the tool
-                           motion state dict, frame times, camera (+ per-frame ``viewmats`` of a
-                           moving endoscope), label table
+                           motion state dict, frame times, camera (+ per-frame ``viewmats`` and
+                           ``exposure`` of a moving endoscope), label table
 ``tool_trajectories.json`` per tool: id, name, [T, 4, 4] canonical -> frame transforms (world metres)
 ``tool_trajectories.npz``  the same arrays, ``object_<id>`` [T, 4, 4] and ``times`` [T] (seconds)
 ``objects.json``           id -> name, is_tool, class
@@ -39,6 +39,7 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.io.scene import ObjectLabel
 from endogsim.recon.deformation import DeformationField
+from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.tools import ToolMotion
 
 __all__ = ["compose_at", "Reconstruction", "ReconResult", "load_reconstruction", "save_torch_atomic"]
@@ -157,6 +158,7 @@ class Reconstruction:
         labels: object table.
         viewmats: [T, 4, 4] world->camera transform of every frame for a moving endoscope (learnt poses),
             None for a fixed one.
+        exposure: per-frame colour gain and bias of a moving endoscope (None: renders are the colours).
     """
 
     tissue: Gaussians
@@ -167,6 +169,7 @@ class Reconstruction:
     camera: Camera
     labels: dict[int, ObjectLabel] = field(default_factory=dict)
     viewmats: torch.Tensor | None = None
+    exposure: FrameExposure | None = None
 
     @property
     def num_frames(self) -> int:
@@ -195,10 +198,14 @@ class Reconstruction:
 
     @torch.no_grad()
     def render(self, frame: int, include_tools: bool = True, backend: str = "auto"):
-        """:class:`~endogsim.gaussians.render.RenderOutput` of frame ``frame``."""
+        """:class:`~endogsim.gaussians.render.RenderOutput` of frame ``frame`` (colours as that frame's camera
+        exposed them)."""
+        from dataclasses import replace
+
         from endogsim.gaussians.render import render_gaussians
 
-        return render_gaussians(self.gaussians_at(frame, include_tools), self.camera_at(frame), backend=backend)
+        out = render_gaussians(self.gaussians_at(frame, include_tools), self.camera_at(frame), backend=backend)
+        return out if self.exposure is None else replace(out, rgb=self.exposure(out.rgb, frame))
 
 
 def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reconstruction:
@@ -221,12 +228,18 @@ def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reco
     cam = data["camera"]
     camera = Camera(torch.as_tensor(cam["K"], dtype=torch.float32), int(cam["width"]), int(cam["height"]))
     labels = {int(k): ObjectLabel(int(k), v["name"], bool(v["is_tool"]), v["class"]) for k, v in data["labels"].items()}
+    exposure = None
+    if data.get("exposure") is not None:
+        exposure = FrameExposure(data["exposure"]["log_gain"].shape[1]).requires_grad_(False)
+        exposure.load_state_dict(data["exposure"])
     rec = Reconstruction(g.subset(torch.arange(n_t)), g.subset(torch.arange(n_t, len(g))), deformation, motion,
-                         torch.as_tensor(data["times"], dtype=torch.float32), camera, labels, data.get("viewmats"))
+                         torch.as_tensor(data["times"], dtype=torch.float32), camera, labels, data.get("viewmats"),
+                         exposure)
     if device != "cpu":
         rec.tissue, rec.tools = rec.tissue.to(device), rec.tools.to(device)
         rec.deformation = rec.deformation.to(device)
         rec.motion = rec.motion.to(device) if rec.motion is not None else None
         rec.camera = rec.camera.to(device)
         rec.viewmats = rec.viewmats.to(device) if rec.viewmats is not None else None
+        rec.exposure = rec.exposure.to(device) if rec.exposure is not None else None
     return rec

@@ -17,7 +17,7 @@ import torch.nn as nn
 
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 
-__all__ = ["ToolMotion", "axis_angle_to_quat", "quat_multiply"]
+__all__ = ["ToolMotion", "axis_angle_to_quat", "quat_multiply", "fill_untrained_frames"]
 
 
 def axis_angle_to_quat(r: torch.Tensor) -> torch.Tensor:
@@ -101,29 +101,41 @@ class ToolMotion(nn.Module):
                 + (self.translation.diff(dim=1) / length_scale).square().mean())
 
     @torch.no_grad()
-    def interpolate_missing(self, trained: torch.Tensor) -> None:
+    def interpolate_missing(self, trained: torch.Tensor, times: torch.Tensor | None = None) -> None:
         """Fill frames never supervised (test frames, frames without the tool) by linear interpolation
         of the trained neighbours (constant beyond the ends).
 
         Args:
             trained: [T] or [K, T] bool, True where a frame's pose was optimised.
+            times: [T] frame times to interpolate in (default: the frame index).
         """
         K, T = self.rotation.shape[:2]
-        trained = trained.expand(K, T) if trained.ndim == 1 else trained
-        for k in range(K):
-            idx = trained[k].nonzero()[:, 0]
-            if len(idx) == 0:
+        fill_untrained_frames([self.rotation, self.translation], trained.expand(K, T) if trained.ndim == 1 else trained,
+                              times)
+
+
+@torch.no_grad()
+def fill_untrained_frames(values: list[torch.Tensor], trained: torch.Tensor, times: torch.Tensor | None = None) -> None:
+    """In place: every frame of ``values`` (each [K, T, C]) where ``trained`` [K, T] is False becomes the
+    linear interpolation, in ``times`` [T] (default: the frame index), of the nearest trained frames
+    before and after it, or the nearest one beyond the ends; rows without any trained frame are left alone."""
+    K, T = trained.shape
+    times = torch.arange(T, dtype=torch.float64) if times is None else torch.as_tensor(times, dtype=torch.float64).cpu()
+    for k in range(K):
+        idx = trained[k].nonzero()[:, 0]
+        if len(idx) == 0:
+            continue
+        for t in range(T):
+            if trained[k, t]:
                 continue
-            for t in range(T):
-                if trained[k, t]:
-                    continue
-                before, after = idx[idx < t], idx[idx > t]
-                if len(before) and len(after):
-                    a, b = int(before[-1]), int(after[0])
-                    w = (t - a) / (b - a)
-                    for p in (self.rotation, self.translation):
-                        p[k, t] = (1 - w) * p[k, a] + w * p[k, b]
-                else:
-                    src = int(before[-1]) if len(before) else int(after[0])
-                    for p in (self.rotation, self.translation):
-                        p[k, t] = p[k, src]
+            before, after = idx[idx < t], idx[idx > t]
+            if len(before) and len(after):
+                a, b = int(before[-1]), int(after[0])
+                span = float(times[b] - times[a])
+                w = float(times[t] - times[a]) / span if span > 0 else 0.5
+                for p in values:
+                    p[k, t] = (1 - w) * p[k, a] + w * p[k, b]
+            else:
+                src = int(before[-1]) if len(before) else int(after[0])
+                for p in values:
+                    p[k, t] = p[k, src]

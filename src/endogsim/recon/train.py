@@ -26,9 +26,14 @@ The tissue model never sees tool pixels, so instruments leave no smear in the ti
 
 A moving endoscope (``camera_motion``; on by default for data with neither poses nor depth) gets a
 learnt pose per frame (:class:`~endogsim.recon.camera_motion.CameraMotion`, started from tracked tissue
-features); every frame is rendered from its pose, test frames from poses interpolated between their
-training neighbours. With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`; the
-training seconds include the tracking and the warm-up.
+features) and, as its light moves with it, a per-frame exposure (:mod:`endogsim.recon.exposure`); the
+tissue that pans into view gets initial Gaussians from the frame that first shows it. Every frame is
+rendered from its pose, test frames from poses and exposures interpolated between their training
+neighbours in frame time (repeated frames of a frame-rate conversion share their time:
+:func:`~endogsim.recon.data.repeated_frames`).
+
+With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`; the training seconds include
+the priors of the initialisation, the tracking and the warm-up.
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ from endogsim.recon.camera_motion import CameraMotion
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
+from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.init import initial_gaussians
 from endogsim.recon.model import ReconResult, compose_at, save_torch_atomic
 from endogsim.recon.params import GaussianParams
@@ -83,6 +89,11 @@ def _masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torc
     return ((pred - gt).abs() * mask[..., None]).sum() / (mask.sum() * 3).clamp_min(1.0)
 
 
+def _wants_exposure(mode: str, moving_camera: bool) -> bool:
+    """"auto": per-frame exposure exactly when the endoscope (and its light) moves."""
+    return moving_camera if mode == "auto" else mode == "on"
+
+
 def _wants_camera_motion(mode: str, prep: PreparedScene) -> bool:
     """"auto": a moving endoscope is assumed when the dataset gives neither poses nor depth."""
     if mode == "auto":
@@ -108,7 +119,7 @@ class Trainer:
         self.tissue_mask = torch.as_tensor(prep.tissue, device=dev, dtype=torch.float32)
         self.tool_mask = torch.as_tensor(prep.tool, device=dev, dtype=torch.float32)
         self.depth = torch.as_tensor(prep.depth, device=dev) if prep.depth_metric else None
-        self.times = torch.as_tensor(sc.times, dtype=torch.float32)
+        self.times = torch.as_tensor(sc.times if prep.times is None else prep.times, dtype=torch.float32)
         self.camera = Camera(torch.as_tensor(sc.K, dtype=torch.float32), sc.width, sc.height).to(dev)
         self.iteration = 0
         self.elapsed = 0.0
@@ -136,6 +147,9 @@ class Trainer:
                 {"params": [self.camera_motion.rotation], "lr": c.lr_camera_rot, "name": "rot"},
                 {"params": [self.camera_motion.translation], "lr": c.lr_camera_trans * self.extent, "name": "trans"},
             ])
+        self.exposure_opt = None
+        if self.exposure is not None:
+            self.exposure_opt = torch.optim.Adam(self.exposure.parameters(), lr=c.lr_exposure)
         self.motion_opt = None
         if self.motion is not None:
             self.motion_opt = torch.optim.Adam([
@@ -146,7 +160,19 @@ class Trainer:
     def init_fresh(self) -> None:
         c, prep = self.cfg, self.prep
         torch.manual_seed(c.seed)
-        ini = initial_gaussians(prep, c.init_stride, c.init_opacity, c.sh_degree, c.tool_depth_factor, c.init_scale)
+        t0 = time.perf_counter()
+        moving = _wants_camera_motion(c.camera_motion, prep)
+        rotations = flows = None
+        if moving:
+            from endogsim.priors.camera import estimate_camera_rotations
+
+            rotations = estimate_camera_rotations(prep.scene.frames, prep.tissue, prep.scene.K, prep.train)
+        if c.flow_method != "none":
+            from endogsim.priors.tracks import consecutive_flows
+
+            flows = consecutive_flows(prep.scene.frames, prep.train, self._flow_estimator())
+        ini = initial_gaussians(prep, c.init_stride, c.init_opacity, c.sh_degree, c.tool_depth_factor, c.init_scale,
+                                flows[1] if (moving and flows is not None) else None, rotations)
         if len(ini.tissue) == 0:
             raise DataError(f"{prep.scene.source}: no tissue pixel with depth in the training frames")
         lo = ini.tissue.means.min(0).values
@@ -174,18 +200,13 @@ class Trainer:
             with torch.no_grad():
                 self.motion.rotation.copy_(ini.init_rotation)
             self.tool_visible = ini.visible
-        self.camera_motion = None
-        if _wants_camera_motion(c.camera_motion, prep):
-            from endogsim.priors.camera import estimate_camera_rotations
-
-            rot = estimate_camera_rotations(prep.scene.frames, prep.tissue, prep.scene.K)
-            self.camera_motion = CameraMotion(len(t), torch.as_tensor(rot)).to(self.device)
+        self.camera_motion = CameraMotion(len(t), torch.as_tensor(rotations)).to(self.device) if moving else None
+        self.exposure = FrameExposure(len(t)).to(self.device) if _wants_exposure(c.exposure, moving) else None
         self._build_optimizers()
-        t0 = time.perf_counter()
-        self._build_tracks()
+        self._build_tracks(flows)
         if self.tracks is not None and c.track_warmup_iters > 0:
             self.init_info["track_warmup_loss"] = self._fit_tracks(c.track_warmup_iters)
-        self.elapsed += time.perf_counter() - t0  # tracking and the warm-up are part of training
+        self.elapsed += time.perf_counter() - t0  # the priors, tracking and the warm-up are part of training
 
     def state(self) -> dict:
         return {
@@ -198,6 +219,8 @@ class Trainer:
             "motion_opt": None if self.motion_opt is None else self.motion_opt.state_dict(),
             "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
             "camera_opt": None if self.camera_opt is None else self.camera_opt.state_dict(),
+            "exposure": None if self.exposure is None else self.exposure.state_dict(),
+            "exposure_opt": None if self.exposure_opt is None else self.exposure_opt.state_dict(),
             "tool_visible": self.tool_visible, "gen": self.gen.get_state(), "order": list(self._order),
             "track_seeds": self.track_seeds,
             "torch_rng": torch.get_rng_state(),
@@ -221,9 +244,16 @@ class Trainer:
             self.camera_motion = CameraMotion(st["camera_motion"]["rotation"].shape[1])
             self.camera_motion.load_state_dict(st["camera_motion"])
             self.camera_motion = self.camera_motion.to(self.device)
+        self.exposure = None
+        if st.get("exposure") is not None:
+            self.exposure = FrameExposure(st["exposure"]["log_gain"].shape[1])
+            self.exposure.load_state_dict(st["exposure"])
+            self.exposure = self.exposure.to(self.device)
         self._build_optimizers()
         if self.camera_opt is not None:
             self.camera_opt.load_state_dict(st["camera_opt"])
+        if self.exposure_opt is not None:
+            self.exposure_opt.load_state_dict(st["exposure_opt"])
         self.deform_opt.load_state_dict(st["deform_opt"])
         if self.motion_opt is not None:
             self.motion_opt.load_state_dict(st["motion_opt"])
@@ -237,19 +267,24 @@ class Trainer:
         save_torch_atomic(self.state(), self.out / "checkpoint.pt")
 
     # ------------------------------------------------------------------ point tracks
-    def _build_tracks(self) -> None:
-        """Track every seeded tissue point through the training frames (:func:`~endogsim.priors.tracks.track_points`)."""
+    def _flow_estimator(self):
+        from endogsim.priors.flow import get_flow_estimator
+
+        c = self.cfg
+        return get_flow_estimator(c.flow_method, c.flow_weights,
+                                  **({"device": str(self.device)} if c.flow_method == "raft" else {}))
+
+    def _build_tracks(self, flows=None) -> None:
+        """Track every seeded tissue point through the training frames (:func:`~endogsim.priors.tracks.track_points`);
+        ``flows``: their :func:`~endogsim.priors.tracks.consecutive_flows` when already computed."""
         self.tracks = None
         if self.track_seeds is None:
             return
-        from endogsim.priors.flow import get_flow_estimator
         from endogsim.priors.tracks import track_points
 
-        c, prep = self.cfg, self.prep
-        est = get_flow_estimator(c.flow_method, c.flow_weights,
-                                 **({"device": str(self.device)} if c.flow_method == "raft" else {}))
+        prep = self.prep
         tracks = track_points(prep.scene.frames, prep.tissue, self.track_seeds["pixels"].numpy(),
-                              self.track_seeds["frames"].numpy(), prep.train, est)
+                              self.track_seeds["frames"].numpy(), prep.train, self._flow_estimator(), flows)
         self.tracks = tracks.to(self.device)
         self.init_info["tracked_share"] = round(float(tracks.valid[:, prep.train].float().mean()), 4)
 
@@ -309,6 +344,10 @@ class Trainer:
         """The camera of ``frame``: fixed, or posed by the learnt camera motion (differentiable)."""
         return self.camera if self.camera_motion is None else self.camera_motion.camera(self.camera, frame)
 
+    def expose(self, rgb: torch.Tensor, frame: int) -> torch.Tensor:
+        """A render [H, W, 3] as frame ``frame``'s camera exposed it (unchanged without per-frame exposure)."""
+        return rgb if self.exposure is None else self.exposure(rgb, frame)
+
     def _next_frame(self) -> int:
         if not self._order:
             perm = torch.randperm(len(self.prep.train), generator=self.gen).tolist()
@@ -356,9 +395,10 @@ class Trainer:
         means2d = out.meta.get("means2d")
         if means2d is not None and means2d.requires_grad and out.meta.get("backend") in ("torch", "warp"):
             means2d.retain_grad()
-        loss = (1 - c.lambda_dssim) * _masked_l1(out.rgb, gt, m)
+        rgb = self.expose(out.rgb, t)
+        loss = (1 - c.lambda_dssim) * _masked_l1(rgb, gt, m)
         if c.lambda_dssim > 0:
-            filled = out.rgb * m[..., None] + gt * (1 - m[..., None])
+            filled = rgb * m[..., None] + gt * (1 - m[..., None])
             loss = loss + c.lambda_dssim * (1 - ssim_map(filled, gt).mean())
         if self.depth is not None and c.lambda_depth > 0:
             d = self.depth[t]
@@ -379,7 +419,7 @@ class Trainer:
             tg = self.motion.apply(self.tools.gaussians(), t)
             tout = render_gaussians(tg, self.view(t), backend=c.backend)
             tm = self.tool_mask[t]
-            comp = tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach()
+            comp = self.expose(tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach(), t)
             tloss = _masked_l1(comp, gt, tm) + c.lambda_tool_alpha * (tout.alpha - tm).abs().mean()
             tloss = tloss + c.lambda_pose_smooth * self.motion.smoothness(self.extent)
             tloss.backward()
@@ -389,9 +429,10 @@ class Trainer:
             info["tool_loss"] = float(tloss.detach())
 
         self.tissue.step()
-        if self.camera_opt is not None:
-            self.camera_opt.step()
-            self.camera_opt.zero_grad(set_to_none=True)
+        for opt in (self.camera_opt, self.exposure_opt):
+            if opt is not None:
+                opt.step()
+                opt.zero_grad(set_to_none=True)
         if fine:
             self.deform_opt.step()
         self.deform_opt.zero_grad(set_to_none=True)
@@ -469,24 +510,27 @@ class Trainer:
         return compose_at(self.tissue.gaussians().detach(), self.tools.gaussians().detach() if self.tools else None,
                           self.deformation, self.motion, float(self.times[frame]), frame, include_tools)
 
-    def _fill_untrained_camera_poses(self) -> None:
-        """Test frames are never trained: their camera poses come from the neighbouring training frames."""
-        if self.camera_motion is not None:
-            trained = torch.zeros(len(self.times), dtype=torch.bool)
-            trained[self.prep.train] = True
-            self.camera_motion.interpolate_missing(trained)
+    def _fill_untrained_cameras(self) -> None:
+        """Test frames are never trained: their camera poses and exposures come from the neighbouring
+        training frames."""
+        trained = torch.zeros(len(self.times), dtype=torch.bool)
+        trained[self.prep.train] = True
+        for part in (self.camera_motion, self.exposure):
+            if part is not None:
+                part.interpolate_missing(trained.to(self.device), self.times)
 
     @torch.no_grad()
     def evaluate(self, frames: list[int], render_dir: Path | None = None) -> dict:
         """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``."""
         from endogsim.io.video_writer import write_frames_png
 
-        self._fill_untrained_camera_poses()
+        self._fill_untrained_cameras()
         res = {"psnr_masked": [], "psnr_endonerf": [], "ssim_masked": [], "ssim_endonerf": [], "psnr_full": []}
         renders, full = [], []
         for t in frames:
             cam = self.view(t)
-            pred = render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb.clamp(0, 1)
+            pred = render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb
+            pred = self.expose(pred, t).clamp(0, 1)
             gt = self.frames[t]
             m, tool = self.tissue_mask[t], self.tool_mask[t]
             res["psnr_masked"].append(psnr(pred, gt, m))
@@ -497,7 +541,8 @@ class Trainer:
             renders.append(pred.cpu().numpy())
             whole = pred
             if self.tools is not None:
-                whole = render_gaussians(self.gaussians_at(t, True), cam, backend=self.cfg.backend).rgb.clamp(0, 1)
+                whole = render_gaussians(self.gaussians_at(t, True), cam, backend=self.cfg.backend).rgb
+                whole = self.expose(whole, t).clamp(0, 1)
                 full.append(whole.cpu().numpy())
             valid = ((self.tissue_mask[t] + tool) > 0).float()  # leave out background / unlabelled
             res["psnr_full"].append(psnr(whole, gt, valid))
@@ -518,8 +563,8 @@ class Trainer:
             trained = self.tool_visible.clone()
             for t in self.prep.test:
                 trained[:, t] = False
-            self.motion.interpolate_missing(trained)
-        self._fill_untrained_camera_poses()
+            self.motion.interpolate_missing(trained, self.times)
+        self._fill_untrained_cameras()
         tissue = self.tissue.gaussians().detach().to("cpu")
         tools = self.tools.gaussians().detach().to("cpu") if self.tools is not None else None
         canonical = Gaussians.concat([tissue, tools]) if tools is not None else tissue
@@ -533,6 +578,8 @@ class Trainer:
                 "tool_ids": self.motion.tool_ids, "state_dict": {k: v.cpu() for k, v in self.motion.state_dict().items()}},
             "num_tissue": len(tissue), "times": self.times.cpu(), "labels": labels,
             "viewmats": None if self.camera_motion is None else self.camera_motion.transforms()[0].detach().cpu(),
+            "exposure": None if self.exposure is None
+            else {k: v.detach().cpu() for k, v in self.exposure.state_dict().items()},
             "camera": {"K": self.camera.K.cpu().tolist(), "width": self.camera.width, "height": self.camera.height},
         }, out / "deformation.pt")
         write_json_atomic(out / "objects.json", labels)
@@ -568,10 +615,13 @@ class Trainer:
             "track_source": self.cfg.flow_method if self.tracks is not None else "none",
             "camera_motion": self.camera_motion is not None,
             "tissue_pixel_fraction": float(self.prep.tissue[self.prep.test].mean()) if self.prep.test else None,
+            "repeated_frames": [] if self.prep.repeated is None else np.nonzero(self.prep.repeated)[0].tolist(),
             "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
                          "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
                          "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
                          "tissue_pixel_fraction": "share of the test frames' pixels the masked metrics cover",
+                         "repeated_frames": "frames showing the same instant as the one before (frame-rate "
+                                            "conversion), found from the training frames; they share its time",
                          "track_source": "optical flow of the point tracks (training frames only)",
                          "render": "tissue model only (tools are a separate model), except psnr_full"},
             "init": self.init_info, "history": self.history,
