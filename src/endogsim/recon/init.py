@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
+from endogsim.recon.tools import axis_angle_to_quat
 
 __all__ = ["backproject", "InitResult", "initial_gaussians"]
 
@@ -76,8 +77,6 @@ def _carry_mask(seen: np.ndarray, bwd: np.ndarray) -> np.ndarray:
 def _camera_to_world(pts: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """Points [M, 3] in the camera of a frame whose world->camera rotation is the axis-angle ``rotation``
     [3] (radians), in world coordinates (x_world = R^T x_cam)."""
-    from endogsim.recon.tools import axis_angle_to_quat
-
     R = quat_to_rotmat(axis_angle_to_quat(torch.as_tensor(rotation, dtype=torch.float32))[None])[0].numpy()
     return pts @ R
 

@@ -155,8 +155,8 @@ class GaussianParams:
     # ------------------------------------------------------------------ checkpointing
     def state(self) -> dict:
         return {"params": {a: self.params[a].detach().clone() for a in ATTRS}, "object_ids": self.object_ids.clone(),
-                "track_ids": self.track_ids.clone(), "optimizer": self.optimizer.state_dict(), "grad_accum": self.grad_accum.clone(),
-                "grad_count": self.grad_count.clone()}
+                "track_ids": self.track_ids.clone(), "optimizer": self.optimizer.state_dict(),
+                "grad_accum": self.grad_accum.clone(), "grad_count": self.grad_count.clone()}
 
     @staticmethod
     def from_state(state: dict, lrs: dict[str, float]) -> "GaussianParams":
@@ -171,8 +171,8 @@ class GaussianParams:
         """Move parameters, moments and statistics to ``device`` (rebuilds the optimiser)."""
         st = self.state()
         st = {**st, "params": {a: v.to(device) for a, v in st["params"].items()},
-              "object_ids": st["object_ids"].to(device), "track_ids": st["track_ids"].to(device), "grad_accum": st["grad_accum"].to(device),
-              "grad_count": st["grad_count"].to(device)}
+              "object_ids": st["object_ids"].to(device), "track_ids": st["track_ids"].to(device),
+              "grad_accum": st["grad_accum"].to(device), "grad_count": st["grad_count"].to(device)}
         lrs = {g["name"]: g["lr"] for g in self.optimizer.param_groups}
         gp = GaussianParams.from_state(st, lrs)
         return gp

@@ -284,7 +284,8 @@ class Trainer:
 
         prep = self.prep
         tracks = track_points(prep.scene.frames, prep.tissue, self.track_seeds["pixels"].numpy(),
-                              self.track_seeds["frames"].numpy(), prep.train, self._flow_estimator(), flows)
+                              self.track_seeds["frames"].numpy(), prep.train,
+                              self._flow_estimator() if flows is None else None, flows)
         self.tracks = tracks.to(self.device)
         self.init_info["tracked_share"] = round(float(tracks.valid[:, prep.train].float().mean()), 4)
 
