@@ -541,7 +541,7 @@ def test_reconstruction_with_camera_motion_exports_poses(synthetic, tmp_path):
 
 def test_time_budget_drives_the_schedule(synthetic, tmp_path):
     """With a time budget the schedules follow the larger of the iteration and time fractions."""
-    cfg = ReconConfig(**{**FAST, "iters": 1000, "time_budget_s": 100.0, "coarse_fraction": 0.1})
+    cfg = ReconConfig(**{**FAST, "iters": 1000, "time_budget_s": 100.0, "coarse_fraction": 0.1, "camera_motion": "on"})
     tr = Trainer(prepare_scene(synthetic, cfg), cfg, tmp_path)
     tr.init_fresh()
     # only the priors and the point-track warm-up have run: progress is their share of the budget
@@ -556,6 +556,11 @@ def test_time_budget_drives_the_schedule(synthetic, tmp_path):
     lr = {g["name"]: g["lr"] for g in tr.tissue.optimizer.param_groups}["means"]
     assert lr == pytest.approx(cfg.lr_means_final * tr.extent)
     assert all(g["lr"] == pytest.approx(0.1 * cfg.lr_grid) for g in tr.deform_opt.param_groups if g["name"] == "grid")
+    # the camera poses and exposures settle too (a constant Adam step would keep them oscillating)
+    cam = {g["name"]: g["lr"] for g in tr.camera_opt.param_groups}
+    assert cam["rot"] == pytest.approx(cfg.lr_camera_decay * cfg.lr_camera_rot)
+    assert cam["trans"] == pytest.approx(cfg.lr_camera_decay * cfg.lr_camera_trans * tr.extent)
+    assert tr.exposure_opt.param_groups[0]["lr"] == pytest.approx(cfg.lr_camera_decay * cfg.lr_exposure)
 
 
 def test_camera_rotation_prior_reads_only_the_given_frames():

@@ -88,6 +88,10 @@ class ReconConfig:
         lr_grid, lr_mlp: HexPlane planes and MLP heads (Endo-4DGS values), decayed by 10x.
         lr_tool_rot (rad), lr_tool_trans (per unit extent); lr_camera_rot, lr_camera_trans likewise;
         lr_exposure: per-frame log gain and bias.
+        lr_camera_decay: the camera-pose and exposure learning rates decay log-linearly to this fraction
+            of their start over the run. Each frame's pose is stepped about once per pass over the
+            training frames and Adam's normalised step has a fixed size, so at a constant rate the poses
+            keep oscillating by a few Adam steps (~0.2 degrees, a pixel or two) around their optimum.
     Densification (3DGS):
         densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
         (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
@@ -149,6 +153,7 @@ class ReconConfig:
     lr_camera_rot: float = 5e-4
     lr_camera_trans: float = 5e-4
     lr_exposure: float = 1e-3
+    lr_camera_decay: float = 0.01
 
     densify_from: float = 0.1
     densify_until: float = 0.6
@@ -177,6 +182,8 @@ class ReconConfig:
             raise DataError(f"init_stride {self.init_stride} must be >= 1")
         if self.init_scale <= 0:
             raise DataError(f"init_scale {self.init_scale} must be positive")
+        if not 0 < self.lr_camera_decay <= 1:
+            raise DataError(f"lr_camera_decay {self.lr_camera_decay} must be in (0, 1]")
         if not 0 < self.init_opacity < 1:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
         if self.time_budget_s is not None and self.time_budget_s <= 0:

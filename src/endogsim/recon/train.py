@@ -379,6 +379,13 @@ class Trainer:
         for g in self.deform_opt.param_groups:
             base = c.lr_grid if g["name"] == "grid" else c.lr_mlp
             g["lr"] = _lr_exp(fine_f, base, base * 0.1)
+        decay = _lr_exp(f, 1.0, c.lr_camera_decay)
+        if self.camera_opt is not None:
+            for g in self.camera_opt.param_groups:
+                g["lr"] = decay * (c.lr_camera_rot if g["name"] == "rot" else c.lr_camera_trans * self.extent)
+        if self.exposure_opt is not None:
+            for g in self.exposure_opt.param_groups:
+                g["lr"] = decay * c.lr_exposure
 
     def step(self) -> dict:
         c = self.cfg
