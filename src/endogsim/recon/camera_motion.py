@@ -10,12 +10,15 @@ which fixes the gauge.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from endogsim.gaussians.camera import Camera
+from endogsim.recon.params import log_linear_lr
 from endogsim.recon.tools import ToolMotion
 
-__all__ = ["CameraMotion", "hold_frame0"]
+__all__ = ["CameraMotion", "hold_frame0", "refine_pose"]
 
 
 def hold_frame0(grad: torch.Tensor) -> torch.Tensor:
@@ -50,3 +53,41 @@ class CameraMotion(ToolMotion):
     def camera(self, base: Camera, frame: int) -> Camera:
         """``base`` (intrinsics, size) looking from frame ``frame``'s pose."""
         return Camera(base.K, base.width, base.height, self.viewmat(frame))
+
+
+def refine_pose(loss_of_viewmat: Callable[[torch.Tensor], torch.Tensor], viewmat: torch.Tensor, length_scale: float,
+                steps: int = 100, lr: float = 2e-3, lr_final: float = 2e-5) -> tuple[torch.Tensor, torch.Tensor]:
+    """One camera pose refined alone against an image, everything else frozen.
+
+    This is the test-time pose optimisation of BARF and NoPe-NeRF: a held-out frame of a video without
+    camera poses has no pose to render it from but the interpolation of its neighbours', and a jerky
+    hand-held endoscope moves off that line. The correction is a rigid motion of the camera
+    (:class:`ToolMotion` of one object pivoting at the camera origin), stepped by Adam at a rate decaying
+    log-linearly from ``lr`` to ``lr_final``.
+
+    Args:
+        loss_of_viewmat: differentiable loss of a [4, 4] world->camera transform (render and compare).
+        viewmat: [4, 4] starting world->camera transform.
+        length_scale: metres per unit of translation step (the scene extent).
+        steps: Adam steps.
+        lr, lr_final: step sizes, radians for the rotation and ``length_scale`` units for the translation.
+
+    Returns:
+        The refined [4, 4] transform (detached) and the correction's [2] (rotation angle in radians,
+        translation length in metres).
+    """
+    correction = ToolMotion([-1], torch.zeros(1, 3), 1).to(viewmat.device)
+    opt = torch.optim.Adam([{"params": [correction.rotation], "lr": lr, "name": "rot"},
+                            {"params": [correction.translation], "lr": lr * length_scale, "name": "trans"}])
+    viewmat = viewmat.detach()
+    for i in range(steps):
+        rate = log_linear_lr(i / max(steps - 1, 1), lr, lr_final)
+        for g in opt.param_groups:
+            g["lr"] = rate * (length_scale if g["name"] == "trans" else 1.0)
+        loss = loss_of_viewmat(correction.transforms()[0, 0] @ viewmat)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        size = torch.stack([correction.rotation[0, 0].norm(), correction.translation[0, 0].norm()])
+        return correction.transforms()[0, 0] @ viewmat, size

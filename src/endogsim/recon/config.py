@@ -96,6 +96,12 @@ class ReconConfig:
         densify_from, densify_until (fractions of iters), densify_every, densify_grad_threshold
         (view-space gradient, NDC units), percent_dense, prune_opacity, max_gaussians;
         densify_max_growth: one densification step adds at most this fraction of the current count.
+    Evaluation:
+        test_pose_steps: a moving endoscope has no pose for a held-out frame but the interpolation of its
+            neighbours'. The metrics use that pose; with ``test_pose_steps`` > 0 the final evaluation also
+            reports them (keys ``*_pose_aligned``) after refining each test frame's pose alone, for this
+            many Adam steps with the model frozen, against the frame (the test-time pose optimisation
+            of BARF and NoPe-NeRF for unposed video). 0 skips it.
     Device:
         device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "warp", "gsplat";
             see :func:`endogsim.gaussians.render.resolve_backend`).
@@ -164,6 +170,8 @@ class ReconConfig:
     max_gaussians: int = 60_000
     densify_max_growth: float = 0.25
 
+    test_pose_steps: int = 100
+
     device: str = "auto"
     backend: str = "auto"
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
@@ -182,6 +190,8 @@ class ReconConfig:
             raise DataError(f"init_stride {self.init_stride} must be >= 1")
         if self.init_scale <= 0:
             raise DataError(f"init_scale {self.init_scale} must be positive")
+        if self.test_pose_steps < 0:
+            raise DataError(f"test_pose_steps {self.test_pose_steps} must be >= 0")
         if not 0 < self.lr_camera_decay <= 1:
             raise DataError(f"lr_camera_decay {self.lr_camera_decay} must be in (0, 1]")
         if not 0 < self.init_opacity < 1:

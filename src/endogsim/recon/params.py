@@ -8,16 +8,24 @@ moments, removed ones take theirs with them), exactly as the reference 3DGS impl
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn as nn
 
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 
-__all__ = ["GaussianParams", "ATTRS"]
+__all__ = ["GaussianParams", "ATTRS", "log_linear_lr"]
 
 ATTRS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 #: Integer labels every Gaussian carries through densification (children inherit their parent's).
 LABELS = ("object_ids", "track_ids")
+
+
+def log_linear_lr(f: float, lr0: float, lr1: float) -> float:
+    """Learning rate decayed log-linearly from lr0 at progress f = 0 to lr1 at f = 1 (clamped)."""
+    f = min(max(f, 0.0), 1.0)
+    return math.exp(math.log(lr0) * (1 - f) + math.log(lr1) * f)
 
 
 class GaussianParams:

@@ -52,14 +52,14 @@ from endogsim.errors import DataError
 from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.render import render_gaussians
-from endogsim.recon.camera_motion import CameraMotion
+from endogsim.recon.camera_motion import CameraMotion, refine_pose
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
 from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.init import initial_gaussians
 from endogsim.recon.model import ReconResult, compose_at, save_torch_atomic
-from endogsim.recon.params import GaussianParams
+from endogsim.recon.params import GaussianParams, log_linear_lr
 from endogsim.recon.tools import ToolMotion
 
 __all__ = ["reconstruct", "Trainer", "Interrupted"]
@@ -77,12 +77,6 @@ def _resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise DataError("device 'cuda' requested but CUDA is not available")
     return torch.device(name)
-
-
-def _lr_exp(f: float, lr0: float, lr1: float) -> float:
-    """Log-linear decay from lr0 at progress 0 to lr1 at progress 1."""
-    f = min(max(f, 0.0), 1.0)
-    return math.exp(math.log(lr0) * (1 - f) + math.log(lr1) * f)
 
 
 def _masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -373,13 +367,13 @@ class Trainer:
         c = self.cfg
         for gp in (self.tissue, self.tools):
             if gp is not None:
-                gp.set_lr("means", _lr_exp(f, c.lr_means * self.extent, c.lr_means_final * self.extent))
+                gp.set_lr("means", log_linear_lr(f, c.lr_means * self.extent, c.lr_means_final * self.extent))
         c0 = c.coarse_fraction
         fine_f = (f - c0) / (1 - c0) if c0 < 1 else 0.0
         for g in self.deform_opt.param_groups:
             base = c.lr_grid if g["name"] == "grid" else c.lr_mlp
-            g["lr"] = _lr_exp(fine_f, base, base * 0.1)
-        decay = _lr_exp(f, 1.0, c.lr_camera_decay)
+            g["lr"] = log_linear_lr(fine_f, base, base * 0.1)
+        decay = log_linear_lr(f, 1.0, c.lr_camera_decay)
         if self.camera_opt is not None:
             for g in self.camera_opt.param_groups:
                 g["lr"] = decay * (c.lr_camera_rot if g["name"] == "rot" else c.lr_camera_trans * self.extent)
@@ -418,7 +412,7 @@ class Trainer:
             if self.tracks is not None and c.lambda_track > 0:
                 track = self._track_loss(t, g.means)
                 if track is not None:
-                    loss = loss + _lr_exp(f, c.lambda_track, c.lambda_track_final) * track
+                    loss = loss + log_linear_lr(f, c.lambda_track, c.lambda_track_final) * track
         loss.backward()
         self._accumulate_view_gradient(g, out, means2d)
         info = {"loss": float(loss.detach()), "frame": t, "n": len(self.tissue)}
@@ -527,15 +521,47 @@ class Trainer:
             if part is not None:
                 part.interpolate_missing(trained.to(self.device), self.times)
 
+    def aligned_view(self, frame: int) -> tuple[Camera, torch.Tensor]:
+        """``frame``'s camera after refining its pose alone against the frame's tissue pixels with the model
+        frozen (:func:`~endogsim.recon.camera_motion.refine_pose`), and the correction's [2] (radians,
+        metres)."""
+        g = self.gaussians_at(frame, False)
+        gt, m = self.frames[frame], self.tissue_mask[frame]
+
+        def loss(viewmat: torch.Tensor) -> torch.Tensor:
+            cam = Camera(self.camera.K, self.camera.width, self.camera.height, viewmat)
+            return _masked_l1(self.expose(render_gaussians(g, cam, backend=self.cfg.backend).rgb, frame), gt, m)
+
+        with torch.enable_grad():
+            viewmat, size = refine_pose(loss, self.view(frame).viewmat, self.extent, self.cfg.test_pose_steps)
+        return Camera(self.camera.K, self.camera.width, self.camera.height, viewmat), size
+
     @torch.no_grad()
-    def evaluate(self, frames: list[int], render_dir: Path | None = None) -> dict:
-        """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``."""
+    def evaluate(self, frames: list[int], render_dir: Path | None = None, align_poses: bool = False) -> dict:
+        """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``.
+
+        ``align_poses`` (moving endoscope, ``test_pose_steps`` > 0): also the masked metrics from each
+        frame's refined pose (:meth:`aligned_view`), keys ``psnr_masked_pose_aligned`` and
+        ``ssim_masked_pose_aligned``, and the size of each correction (``pose_alignment``).
+        """
         from endogsim.io.video_writer import write_frames_png
 
         self._fill_untrained_cameras()
         res = {"psnr_masked": [], "psnr_endonerf": [], "ssim_masked": [], "ssim_endonerf": [], "psnr_full": []}
+        align_poses = align_poses and self.camera_motion is not None and self.cfg.test_pose_steps > 0
+        if align_poses:
+            res |= {"psnr_masked_pose_aligned": [], "ssim_masked_pose_aligned": []}
+            corrections = []
         renders, full = [], []
         for t in frames:
+            if align_poses:
+                cam, size = self.aligned_view(t)
+                pred = self.expose(render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb, t)
+                pred = pred.clamp(0, 1)
+                res["psnr_masked_pose_aligned"].append(psnr(pred, self.frames[t], self.tissue_mask[t]))
+                res["ssim_masked_pose_aligned"].append(ssim(pred, self.frames[t], self.tissue_mask[t]))
+                corrections.append({"frame": t, "rotation_deg": round(math.degrees(float(size[0])), 4),
+                                    "translation_m": round(float(size[1]), 7)})
             cam = self.view(t)
             pred = render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb
             pred = self.expose(pred, t).clamp(0, 1)
@@ -558,7 +584,10 @@ class Trainer:
             for sub, imgs in (("test", renders), ("test_full", full)):
                 for t, img in zip(frames, imgs):
                     write_frames_png(img[None], render_dir / sub, pattern=f"frame_{t:04d}.png")
-        return {k: float(np.mean(v)) if v else float("nan") for k, v in res.items()} | {"per_frame": res}
+        out = {k: float(np.mean(v)) if v else float("nan") for k, v in res.items()} | {"per_frame": res}
+        if align_poses:
+            out["pose_alignment"] = corrections
+        return out
 
     def export(self) -> dict:
         """Write every run output (see :mod:`endogsim.recon.model`) and return the metrics."""
@@ -609,7 +638,7 @@ class Trainer:
         np.savez(tmp, times=self.times.numpy(), **arrays)
         tmp.replace(out / "tool_trajectories.npz")
 
-        ev = self.evaluate(self.prep.test, out / "renders")
+        ev = self.evaluate(self.prep.test, out / "renders", align_poses=True)
         per_frame = ev.pop("per_frame")
         metrics = {
             **ev, "ssim": ev["ssim_masked"], "test_frames": self.prep.test, "per_frame": per_frame,
@@ -631,6 +660,10 @@ class Trainer:
                          "repeated_frames": "frames showing the same instant as the one before (frame-rate "
                                             "conversion), found from the training frames; they share its time",
                          "track_source": "optical flow of the point tracks (training frames only)",
+                         "pose": "moving endoscope: each test frame is rendered from the interpolation of its "
+                                 "training neighbours' poses; *_pose_aligned: from that pose refined alone "
+                                 "against the test frame, model frozen (BARF's test-time pose optimisation; "
+                                 "pose_alignment gives each correction)",
                          "render": "tissue model only (tools are a separate model), except psnr_full"},
             "init": self.init_info, "history": self.history,
         }
