@@ -51,6 +51,7 @@ import torch
 from endogsim.errors import DataError
 from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
 from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
 from endogsim.gaussians.render import render_gaussians
 from endogsim.recon.camera_motion import CameraMotion, refine_pose
 from endogsim.recon.config import ReconConfig
@@ -521,11 +522,10 @@ class Trainer:
             if part is not None:
                 part.interpolate_missing(trained.to(self.device), self.times)
 
-    def aligned_view(self, frame: int) -> tuple[Camera, torch.Tensor]:
+    def aligned_view(self, frame: int, g: Gaussians) -> tuple[Camera, torch.Tensor]:
         """``frame``'s camera after refining its pose alone against the frame's tissue pixels with the model
         frozen (:func:`~endogsim.recon.camera_motion.refine_pose`), and the correction's [2] (radians,
-        metres)."""
-        g = self.gaussians_at(frame, False)
+        metres). ``g``: the tissue Gaussians at ``frame`` (:meth:`gaussians_at`, without tools)."""
         gt, m = self.frames[frame], self.tissue_mask[frame]
 
         def loss(viewmat: torch.Tensor) -> torch.Tensor:
@@ -554,19 +554,19 @@ class Trainer:
             corrections = []
         renders, full = [], []
         for t in frames:
-            if align_poses:
-                cam, size = self.aligned_view(t)
-                pred = self.expose(render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb, t)
-                pred = pred.clamp(0, 1)
-                res["psnr_masked_pose_aligned"].append(psnr(pred, self.frames[t], self.tissue_mask[t]))
-                res["ssim_masked_pose_aligned"].append(ssim(pred, self.frames[t], self.tissue_mask[t]))
-                corrections.append({"frame": t, "rotation_deg": round(math.degrees(float(size[0])), 4),
-                                    "translation_m": round(float(size[1]), 7)})
+            tissue = self.gaussians_at(t, False)
             cam = self.view(t)
-            pred = render_gaussians(self.gaussians_at(t, False), cam, backend=self.cfg.backend).rgb
-            pred = self.expose(pred, t).clamp(0, 1)
+            pred = self.expose(render_gaussians(tissue, cam, backend=self.cfg.backend).rgb, t).clamp(0, 1)
             gt = self.frames[t]
             m, tool = self.tissue_mask[t], self.tool_mask[t]
+            if align_poses:
+                aligned_cam, size = self.aligned_view(t, tissue)
+                aligned = render_gaussians(tissue, aligned_cam, backend=self.cfg.backend).rgb
+                aligned = self.expose(aligned, t).clamp(0, 1)
+                res["psnr_masked_pose_aligned"].append(psnr(aligned, gt, m))
+                res["ssim_masked_pose_aligned"].append(ssim(aligned, gt, m))
+                corrections.append({"frame": t, "rotation_deg": round(math.degrees(float(size[0])), 4),
+                                    "translation_m": round(float(size[1]), 7)})
             res["psnr_masked"].append(psnr(pred, gt, m))
             res["ssim_masked"].append(ssim(pred, gt, m))
             res["psnr_endonerf"].append(psnr_endonerf(pred, gt, tool))
@@ -592,7 +592,6 @@ class Trainer:
     def export(self) -> dict:
         """Write every run output (see :mod:`endogsim.recon.model`) and return the metrics."""
         from endogsim.cli.common import write_json_atomic
-        from endogsim.gaussians.model import Gaussians
         from endogsim.gaussians.ply import write_ply
 
         out, sc = self.out, self.prep.scene
