@@ -63,15 +63,19 @@ def register(app: typer.Typer) -> None:
                            description=f"reconstruct (loss {info['loss']:.4f}, {info['n']} Gaussians)")
 
             m = reconstruct(data, out, cfg, progress=cb, resume=not fresh)
+        interpolated = ([("PSNR masked, interpolated test poses (dB)", m["psnr_masked_interpolated_pose"])]
+                        if "psnr_masked_interpolated_pose" in m else [])
         print_table(f"Reconstruction of {data} ({m['resolution'][0]}x{m['resolution'][1]}, test frames "
                     f"{m['test_frames']})", ["metric", "value"],
-                    [("PSNR masked (dB)", m["psnr_masked"]), ("PSNR EndoNeRF protocol (dB)", m["psnr_endonerf"]),
+                    [("PSNR masked (dB)", m["psnr_masked"]), *interpolated,
+                     ("PSNR EndoNeRF protocol (dB)", m["psnr_endonerf"]),
                      ("SSIM masked", m["ssim_masked"]), ("SSIM EndoNeRF protocol", m["ssim_endonerf"]),
                      ("training seconds", m["training_seconds"]), ("iterations", m["iterations"]),
                      ("Gaussians", m["num_gaussians"]),
                      ("depth prior", m["depth_source"]), ("segmentation", m["segmentation_source"]),
                      ("point tracks", m["track_source"] if m["track_source"] == "none" else
                       f"{m['track_source']} ({m['init'].get('tracked_share', 0):.0%} of Gaussian-frames)"),
-                     ("camera", "moving (learnt poses)" if m["camera_motion"] else "fixed"),
+                     ("camera", ("moving (learnt poses, test poses registered)" if "pose_alignment" in m else
+                                "moving (learnt poses)") if m["camera_motion"] else "fixed"),
                      ("tissue share of test pixels", m["tissue_pixel_fraction"])])
         console.print(f"wrote {out}")

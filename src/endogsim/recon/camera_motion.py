@@ -15,8 +15,9 @@ from typing import Callable
 import torch
 
 from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import rotmat_to_quat
 from endogsim.recon.params import log_linear_lr
-from endogsim.recon.tools import ToolMotion
+from endogsim.recon.tools import ToolMotion, quat_to_axis_angle
 
 __all__ = ["CameraMotion", "hold_frame0", "refine_pose"]
 
@@ -49,6 +50,12 @@ class CameraMotion(ToolMotion):
     def viewmat(self, frame: int) -> torch.Tensor:
         """[4, 4] world->camera transform of ``frame`` (differentiable)."""
         return self.transforms()[0, frame]
+
+    @torch.no_grad()
+    def set_viewmat(self, frame: int, viewmat: torch.Tensor) -> None:
+        """Make ``frame``'s pose the rigid [4, 4] world->camera transform ``viewmat``."""
+        self.rotation[0, frame] = quat_to_axis_angle(rotmat_to_quat(viewmat[None, :3, :3]))[0]
+        self.translation[0, frame] = viewmat[:3, 3]  # the pivot is the origin: x_cam = R x + T
 
     def camera(self, base: Camera, frame: int) -> Camera:
         """``base`` (intrinsics, size) looking from frame ``frame``'s pose."""

@@ -98,10 +98,10 @@ class ReconConfig:
         densify_max_growth: one densification step adds at most this fraction of the current count.
     Evaluation:
         test_pose_steps: a moving endoscope has no pose for a held-out frame but the interpolation of its
-            neighbours'. The metrics use that pose; with ``test_pose_steps`` > 0 the final evaluation also
-            reports them (keys ``*_pose_aligned``) after refining each test frame's pose alone, for this
-            many Adam steps with the model frozen, against the frame (the test-time pose optimisation
-            of BARF and NoPe-NeRF for unposed video). 0 skips it.
+            neighbours'. The final evaluation registers it to the frame: that pose is refined alone, for
+            this many Adam steps with the model frozen (the test-time pose optimisation by which BARF and
+            NoPe-NeRF evaluate unposed video), and the metrics use the result; the interpolated pose's
+            stay under ``*_interpolated_pose``. 0 keeps the interpolated pose.
     Device:
         device: "auto", "cpu" or "cuda"; backend: render backend ("auto", "torch", "warp", "gsplat";
             see :func:`endogsim.gaussians.render.resolve_backend`).

@@ -8,6 +8,9 @@ pixel classes the losses use:
 * tool pixels: ids whose label is a tool;
 * neither: unlabelled (-1) and background pixels, left out of every loss and metric.
 
+The endoscope's field of view (:func:`field_of_view`): pixels labelled background in every training frame
+lie outside the lens's image circle; renders are black there, as the camera's pictures are.
+
 Procedural scenes written by ``endogsim synth`` carry ``scene.json``: its ``depth_scale`` (stored units
 per metre) and its ``object_masks/`` (the scene's own ids and names) are used when present, so
 reconstructed object ids match the generator's.
@@ -32,7 +35,8 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.io.scene import ObjectLabel, Scene
 
-__all__ = ["PreparedScene", "prepare_scene", "split_frames", "load_recon_scene", "repeated_frames", "video_times"]
+__all__ = ["PreparedScene", "prepare_scene", "split_frames", "load_recon_scene", "repeated_frames", "video_times",
+           "field_of_view"]
 
 #: mean absolute difference (RGB in [0, 1]) under which two consecutive frames are the same picture
 REPEAT_THRESHOLD = 0.5 / 255
@@ -99,6 +103,8 @@ class PreparedScene:
         times: [T] float64 frame times (seconds) for the model, :func:`video_times` of the scene's
             (None: the scene's own).
         repeated: [T] bool, frames that repeat their predecessor (:func:`repeated_frames`).
+        field_of_view: [H, W] bool, pixels inside the endoscope's field of view (:func:`field_of_view`;
+            None: all of them).
     """
 
     scene: Scene
@@ -112,6 +118,7 @@ class PreparedScene:
     test: list[int]
     times: np.ndarray | None = None
     repeated: np.ndarray | None = None
+    field_of_view: np.ndarray | None = None
 
     @property
     def tool_ids(self) -> list[int]:
@@ -162,6 +169,23 @@ def load_recon_scene(path: str | Path, downscale: float, max_frames: int | None 
     return scene
 
 
+def field_of_view(object_masks: np.ndarray, background_ids: list[int], frames_used: list[int]) -> np.ndarray | None:
+    """[H, W] bool: pixels inside the endoscope's field of view, or None when it fills the image.
+
+    The lens of an endoscope images a fixed circle (CholecSeg8K labels the black around it
+    ``background``); a pixel is outside when it is background in every frame of ``frames_used``.
+
+    Args:
+        object_masks: [T, H, W] int object ids.
+        background_ids: ids whose label is background.
+        frames_used: frames to read (the training frames).
+    """
+    if not background_ids or not frames_used:
+        return None
+    outside = np.isin(object_masks[frames_used], background_ids).all(0)
+    return ~outside if outside.any() else None
+
+
 def prepare_scene(path: str | Path, config) -> PreparedScene:
     """Load ``path`` at ``config.resolution_scale`` and attach depth and segmentation priors.
 
@@ -183,5 +207,7 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     tissue = np.isin(seg.masks, tissue_ids)
     train, test = split_frames(scene.num_frames)
     repeated = repeated_frames(scene.frames, train)
+    background_ids = [i for i, lab in seg.labels.items() if lab.klass == "background"]
     return PreparedScene(scene, dp.depth, dp.source, dp.metric, seg.source, tissue, tool, train, test,
-                         video_times(scene.times, repeated), repeated)
+                         video_times(scene.times, repeated), repeated,
+                         field_of_view(seg.masks, background_ids, train))

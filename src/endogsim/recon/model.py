@@ -11,7 +11,8 @@ Run-folder files (all written atomically):
 ``frame0.ply``             the Gaussians at frame 0 (deformed tissue, tools at their frame-0 pose)
 ``deformation.pt``         torch file: the deformation field (architecture + state dict), the tool
                            motion state dict, frame times, camera (+ per-frame ``viewmats`` and
-                           ``exposure`` of a moving endoscope), label table
+                           ``exposure`` of a moving endoscope, ``field_of_view`` of one with a
+                           border), label table
 ``tool_trajectories.json`` per tool: id, name, [T, 4, 4] canonical -> frame transforms (world metres)
 ``tool_trajectories.npz``  the same arrays, ``object_<id>`` [T, 4, 4] and ``times`` [T] (seconds)
 ``objects.json``           id -> name, is_tool, class
@@ -159,6 +160,8 @@ class Reconstruction:
         viewmats: [T, 4, 4] world->camera transform of every frame for a moving endoscope (learnt poses),
             None for a fixed one.
         exposure: per-frame colour gain and bias of a moving endoscope (None: renders are the colours).
+        field_of_view: [H, W] bool, pixels inside the endoscope's image circle (None: the whole image);
+            :meth:`render` is black outside it.
     """
 
     tissue: Gaussians
@@ -170,6 +173,7 @@ class Reconstruction:
     labels: dict[int, ObjectLabel] = field(default_factory=dict)
     viewmats: torch.Tensor | None = None
     exposure: FrameExposure | None = None
+    field_of_view: torch.Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -199,13 +203,16 @@ class Reconstruction:
     @torch.no_grad()
     def render(self, frame: int, include_tools: bool = True, backend: str = "auto"):
         """:class:`~endogsim.gaussians.render.RenderOutput` of frame ``frame`` (colours as that frame's camera
-        exposed them)."""
+        exposed them, black outside its field of view)."""
         from dataclasses import replace
 
         from endogsim.gaussians.render import render_gaussians
 
         out = render_gaussians(self.gaussians_at(frame, include_tools), self.camera_at(frame), backend=backend)
-        return out if self.exposure is None else replace(out, rgb=self.exposure(out.rgb, frame))
+        rgb = out.rgb if self.exposure is None else self.exposure(out.rgb, frame)
+        if self.field_of_view is not None:
+            rgb = rgb * self.field_of_view[..., None].to(rgb)
+        return replace(out, rgb=rgb)
 
 
 def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reconstruction:
@@ -234,7 +241,7 @@ def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reco
         exposure.load_state_dict(data["exposure"])
     rec = Reconstruction(g.subset(torch.arange(n_t)), g.subset(torch.arange(n_t, len(g))), deformation, motion,
                          torch.as_tensor(data["times"], dtype=torch.float32), camera, labels, data.get("viewmats"),
-                         exposure)
+                         exposure, data.get("field_of_view"))
     if device != "cpu":
         rec.tissue, rec.tools = rec.tissue.to(device), rec.tools.to(device)
         rec.deformation = rec.deformation.to(device)
@@ -242,4 +249,5 @@ def load_reconstruction(run_dir: str | os.PathLike, device: str = "cpu") -> Reco
         rec.camera = rec.camera.to(device)
         rec.viewmats = rec.viewmats.to(device) if rec.viewmats is not None else None
         rec.exposure = rec.exposure.to(device) if rec.exposure is not None else None
+        rec.field_of_view = rec.field_of_view.to(device) if rec.field_of_view is not None else None
     return rec

@@ -17,7 +17,7 @@ import torch.nn as nn
 
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 
-__all__ = ["ToolMotion", "axis_angle_to_quat", "quat_multiply", "fill_untrained_frames"]
+__all__ = ["ToolMotion", "axis_angle_to_quat", "quat_to_axis_angle", "quat_multiply", "fill_untrained_frames"]
 
 
 def axis_angle_to_quat(r: torch.Tensor) -> torch.Tensor:
@@ -28,6 +28,18 @@ def axis_angle_to_quat(r: torch.Tensor) -> torch.Tensor:
     # sin(theta/2)/theta, with its Taylor series near 0 so the gradient stays finite
     k = torch.where(theta2 > 1e-12, torch.sin(half) / theta, 0.5 - theta2 / 48.0)
     return torch.cat([torch.cos(half), r * k], -1)
+
+
+def quat_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors [..., 3] (radians, angle <= pi) from quaternions (w, x, y, z) [..., 4], any norm;
+    the inverse of :func:`axis_angle_to_quat`."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    q = q * torch.where(q[..., :1] < 0, -1.0, 1.0)  # q and -q are the same rotation; take the short way
+    v = q[..., 1:]
+    s = v.norm(dim=-1, keepdim=True)
+    # angle / sin(angle/2), with its limit 2 / w near 0
+    k = torch.where(s > 1e-12, 2 * torch.atan2(s, q[..., :1]) / s.clamp_min(1e-12), 2 / q[..., :1])
+    return v * k
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
