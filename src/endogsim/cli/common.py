@@ -43,6 +43,8 @@ def progress() -> Progress:
     return Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, transient=False,
+        # the refresh thread takes the GIL from the training loop and the Warp launch threads: 2 Hz is enough
+        refresh_per_second=2,
     )
 
 

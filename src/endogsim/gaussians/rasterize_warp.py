@@ -9,7 +9,8 @@ scheme of the reference 3DGS CUDA rasteriser, compiled by Warp:
    of the depth-ordered list gives each tile its Gaussians front to back.
 2. :func:`composite_forward` (one thread per pixel): walks its tile's list front to back with the
    conventions of the reference (alpha clamp 0.99, skip below 1/255, stop before the transmittance falls
-   to 1e-4) and, when gradients are wanted, records which Gaussians contributed to the pixel.
+   to 1e-4) and, when gradients are wanted, records which Gaussians contributed to the pixel. A pair
+   whose exponent exceeds its Gaussian's ln(opacity / alpha_min) is left before the exponential.
 3. :func:`composite_backward` (one thread per pixel): walks the recorded contributors back to front,
    recovering the transmittance in front of each by division and carrying the scalar
    ``S = sum_{j>k} w_j c_j . g + T_final bg . g``, so any number of channels needs no per-channel state;
@@ -17,7 +18,8 @@ scheme of the reference 3DGS CUDA rasteriser, compiled by Warp:
 
 On CPU Warp runs a launch serially as native code and releases the GIL meanwhile, so each launch is
 split into interleaved pixel bands, one per torch thread, launched from a small thread pool (every band
-accumulates gradients in its own buffer). The per-pair work costs nanoseconds instead of the dozen tensor
+accumulates gradients in its own buffer). Pixels are visited tile by tile, so a thread finds the
+Gaussians of a tile's list in its cache. The per-pair work costs nanoseconds instead of the dozen tensor
 passes per pair of the PyTorch path; ``endogsim bench render`` compares the two. Kernels are float32 (a
 per-pixel running product needs no float64, unlike the PyTorch path's long cumulative sums).
 """
@@ -48,17 +50,25 @@ def gaussian_sigma(px: float, py: float, mean: wp.vec2, conic: wp.vec3):
 
 
 @wp.func
-def pixel_tile_list(p: int, width: int, tiles_x: int, tile_size: int, tile_offsets: wp.array(dtype=wp.int32)):
-    """Pixel ``p``'s centre (px, py), its tile's list ``[begin, end)`` in ``gaussian_ids``, and the first
-    slot of its contributor list in ``contrib``: every pixel of a tile gets as many slots as the tile's
-    list is long, which bounds its contributors (the forward pass writes there, the backward pass reads)."""
-    x = p % width
-    y = p / width
-    tile = (y / tile_size) * tiles_x + x / tile_size
+def pixel_tile_list(item: int, width: int, height: int, tiles_x: int, tile_size: int,
+                    tile_offsets: wp.array(dtype=wp.int32)):
+    """The pixel of launch item ``item``: items run tile by tile (the pixels of a tile in a row, so a
+    thread reuses the tile's Gaussians from its cache instead of fetching them once per image row).
+
+    Returns the pixel's index p (row-major, -1 for the items of an edge tile beyond the image), its
+    centre (px, py), its tile's list ``[begin, end)`` in ``gaussian_ids``, and the first slot of its
+    contributor list in ``contrib``: every pixel of a tile gets as many slots as the tile's list is long,
+    which bounds its contributors (the forward pass writes there, the backward pass reads)."""
+    area = tile_size * tile_size
+    tile = item / area
+    local = item % area
+    x = (tile % tiles_x) * tile_size + local % tile_size
+    y = (tile / tiles_x) * tile_size + local / tile_size
     begin = tile_offsets[tile]
     end = tile_offsets[tile + 1]
-    slot = begin * tile_size * tile_size + ((y % tile_size) * tile_size + x % tile_size) * (end - begin)
-    return float(x) + 0.5, float(y) + 0.5, begin, end, slot
+    slot = begin * area + local * (end - begin)
+    p = wp.where((x < width) and (y < height), y * width + x, -1)
+    return p, float(x) + 0.5, float(y) + 0.5, begin, end, slot
 
 
 @wp.kernel
@@ -68,10 +78,12 @@ def composite_forward(
     means2d: wp.array(dtype=wp.vec2),  # [N] pixels
     conics: wp.array(dtype=wp.vec3),  # [N] (a, b, c) of the inverse 2D covariance
     opacities: wp.array(dtype=float),  # [N]
+    sigma_cut: wp.array(dtype=float),  # [N] ln(opacity / alpha_min): the pair's alpha < alpha_min beyond it
     colors: wp.array(dtype=Any),  # [N] vectors of C channels
     background: Any,  # C channels
     width: int,
-    n_pixels: int,
+    height: int,
+    n_items: int,  # tiles * tile_size^2
     tiles_x: int,
     tile_size: int,
     alpha_min: float,
@@ -85,19 +97,25 @@ def composite_forward(
     n_contrib: wp.array(dtype=wp.int32),  # [P] out: pairs recorded for the backward pass
     contrib: wp.array(dtype=wp.int32),  # [M * tile_size^2] out (when record): each pixel's contributors
 ):
-    p = wp.tid() * n_bands + band  # bands interleave pixels so that every band gets the same mix of work
-    if p >= n_pixels:
+    item = wp.tid() * n_bands + band  # bands interleave pixels so that every band gets the same mix of work
+    if item >= n_items:
         return
-    px, py, begin, end, slot = pixel_tile_list(p, width, tiles_x, tile_size, tile_offsets)
+    p, px, py, begin, end, slot = pixel_tile_list(item, width, height, tiles_x, tile_size, tile_offsets)
+    if p < 0:
+        return
     acc = background * 0.0
     T = float(1.0)
     n = int(0)
     for k in range(begin, end):
         g = gaussian_ids[k]
         sigma = gaussian_sigma(px, py, means2d[g], conics[g])
+        # Most pairs of a tile's list miss the pixel (the tissue never becomes opaque enough to stop the
+        # walk early): leave them before the exponential, which is most of a pair's cost.
+        if sigma > sigma_cut[g]:
+            continue
         alpha = wp.min(alpha_max, opacities[g] * wp.exp(-sigma))
-        # Skipped pairs (alpha < 1/255, or sigma < 0 from a degenerate conic) get alpha 0, which changes
-        # nothing: selects, because on a CPU an unpredictable branch per pair costs more than the work.
+        # The remaining skipped pairs (alpha < 1/255 by rounding, or sigma < 0 from a degenerate conic) get
+        # alpha 0, which changes nothing.
         alpha = wp.where(sigma >= 0.0, wp.where(alpha >= alpha_min, alpha, 0.0), 0.0)
         next_T = T * (1.0 - alpha)
         if next_T <= transmittance_min:
@@ -121,7 +139,8 @@ def composite_backward(
     colors: wp.array(dtype=Any),
     background: Any,
     width: int,
-    n_pixels: int,
+    height: int,
+    n_items: int,
     tiles_x: int,
     tile_size: int,
     alpha_max: float,
@@ -137,10 +156,12 @@ def composite_backward(
     grad_opacities: wp.array(dtype=float),  # [N] out
     grad_colors: wp.array(dtype=Any),  # [N] out
 ):
-    p = wp.tid() * n_bands + band
-    if p >= n_pixels:
+    item = wp.tid() * n_bands + band
+    if item >= n_items:
         return
-    px, py, begin, end, slot = pixel_tile_list(p, width, tiles_x, tile_size, tile_offsets)
+    p, px, py, begin, end, slot = pixel_tile_list(item, width, height, tiles_x, tile_size, tile_offsets)
+    if p < 0:
+        return
     T = final_transmittance[p]
     g_img = grad_image[p]
     g_alpha_px = grad_alpha[p]
@@ -185,6 +206,11 @@ class TileBins:
     @property
     def n_pairs(self) -> int:
         return int(self.gaussian_ids.numel())
+
+    @property
+    def n_items(self) -> int:
+        """Launch items of the compositing kernels: every pixel slot of every tile (edge tiles included)."""
+        return (len(self.offsets) - 1) * self.tile_size**2
 
 
 def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, valid: torch.Tensor,
@@ -246,14 +272,15 @@ class _TileComposite(torch.autograd.Function):
         capacity = bins.n_pairs * bins.tile_size**2 if record else 1
         contrib = torch.empty(max(capacity, 1), dtype=torch.int32, device=dev)
         if P > 0:
+            sigma_cut = torch.log(op.clamp_min(1e-30) / config.alpha_min)
             common = [_wp(bins.offsets), _wp(bins.gaussian_ids), _wp(m2, wp.vec2), _wp(co, wp.vec3), _wp(op),
-                      _wp(col, vec), vec(*bg.tolist()), width, P, bins.tiles_x, bins.tile_size, config.alpha_min,
-                      config.alpha_max, config.transmittance_min]
+                      _wp(sigma_cut), _wp(col, vec), vec(*bg.tolist()), width, height, bins.n_items, bins.tiles_x,
+                      bins.tile_size, config.alpha_min, config.alpha_max, config.transmittance_min]
             outs = [_wp(image, vec), _wp(t_final), _wp(n_contrib), _wp(contrib)]
             device = warp_device(m2)
-            launch_split(composite_forward, P, device, n_bands(device, P),
+            launch_split(composite_forward, bins.n_items, device, n_bands(device, P),
                          lambda b, n: common + [b, n, int(record)] + outs)
-        ctx.bins, ctx.width, ctx.config = bins, width, config
+        ctx.bins, ctx.width, ctx.height, ctx.config = bins, width, height, config
         ctx.dtypes = [t.dtype for t in (means2d, conics, opacities, colors, background)]
         ctx.save_for_backward(*inputs, t_final, n_contrib, contrib)
         out = torch.cat([image, (1.0 - t_final)[:, None]], 1)
@@ -274,14 +301,15 @@ class _TileComposite(torch.autograd.Function):
         g_op, g_col = op.new_zeros(nb, *op.shape), col.new_zeros(nb, *col.shape)
         if P > 0:
             common = [_wp(bins.offsets), _wp(m2, wp.vec2), _wp(co, wp.vec3), _wp(op), _wp(col, vec),
-                      vec(*bg.tolist()), ctx.width, P, bins.tiles_x, bins.tile_size, cfg.alpha_max]
+                      vec(*bg.tolist()), ctx.width, ctx.height, bins.n_items, bins.tiles_x, bins.tile_size,
+                      cfg.alpha_max]
             rest = [_wp(t_final), _wp(n_contrib), _wp(contrib), _wp(g_img, vec), _wp(g_alpha)]
 
             def inputs(b, n):
                 return common + [b, n] + rest + [_wp(g_m2[b], wp.vec2), _wp(g_co[b], wp.vec3), _wp(g_op[b]),
                                                  _wp(g_col[b], vec)]
 
-            launch_split(composite_backward, P, device, nb, inputs)
+            launch_split(composite_backward, bins.n_items, device, nb, inputs)
         g_bg = g_img.T @ t_final
         grads = (g_m2.sum(0), g_co.sum(0), g_op.sum(0), g_col.sum(0), g_bg)
         return (*(gr.to(dt) for gr, dt in zip(grads, ctx.dtypes)), None, None, None, None)
