@@ -24,7 +24,7 @@ from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 from endogsim.gaussians.ply import read_ply
 from endogsim.gaussians.render import render_gaussians
 from endogsim.recon.config import ReconConfig, load_config
-from endogsim.recon.deformation import DeformationConfig, DeformationField
+from endogsim.recon.deformation import DeformationConfig, DeformationField, _Heads
 from endogsim.recon.hexplane import HexPlane
 from endogsim.recon.model import ReconResult, load_reconstruction
 from endogsim.recon.params import GaussianParams
@@ -183,8 +183,6 @@ def test_deformation_field_is_identity_at_init_and_learns():
 def test_fused_decoder_heads_match_separate_heads_in_values_and_gradients():
     """The fused heads (one hidden GEMM, one block-diagonal output GEMM) are the Endo-4DGS heads, each
     ReLU -> Linear -> ReLU -> Linear on its own, written out here as the reference."""
-    from endogsim.recon.deformation import _Heads
-
     torch.manual_seed(0)
     heads = _Heads(8, {"pos": 3, "rot": 4, "scale": 3, "opacity": 1}).double()
     for layer in heads.out.values():  # the output layers start at zero; make them count
