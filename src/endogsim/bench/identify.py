@@ -17,11 +17,8 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Optional
 
-import typer
 
-from endogsim.cli.common import user_errors
 
 ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
 SCENES_CACHE = Path.home() / ".cache" / "endogsim" / "bench_scenes"  # default of every bench's --scenes-dir
@@ -135,32 +132,3 @@ def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int 
         out["tables"][table] = {"title": f"{option} ablation on {abl_scene} (prior init)",
                                 "columns": [option, "RE", "EPE px", "seconds", "iterations"], "rows": rows}
     return out
-
-
-def register(bench_app: typer.Typer) -> None:
-    """Add ``identify`` to the ``bench`` sub-app."""
-
-    @bench_app.command("identify")
-    @user_errors
-    def bench_identify(
-        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the tables and runs as JSON."),
-        quick: bool = typer.Option(False, "--quick", help="tiny (and a small two_tissues), 6 iterations (minutes on CPU)."),
-        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per optimised run."),
-        frames: Optional[int] = typer.Option(None, "--frames", help="Identify from the first N frames only."),
-        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated scenes for the tables."),
-        tables: Optional[str] = typer.Option(None, "--tables", help="Comma-separated subset of init,field,loss,grad."),
-        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
-                                        help="Where benchmark scenes are synthesized (reused)."),
-        work_dir: Path = typer.Option(Path("bench_identify_runs"), "--work-dir", help="Run folders of the ablations."),
-    ) -> None:
-        """Identification ablations: init x optimisation, material field vs global, loss, gradient mode."""
-        from endogsim.cli.common import console, print_table, write_json_atomic
-
-        res = run_bench(scenes_dir, work_dir, quick=quick, iters=iters, frames=frames,
-                        scenes=scenes.split(",") if scenes else None, tables=tables.split(",") if tables else None,
-                        log=console.print)
-        for t in res["tables"].values():
-            print_table(t["title"], t["columns"], t["rows"])
-        if json_out is not None:
-            write_json_atomic(json_out, res)
-            console.print(f"wrote {json_out}")

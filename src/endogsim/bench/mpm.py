@@ -19,9 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-import typer
 
-from endogsim.cli.common import console, print_table, user_errors, write_json_atomic
 
 GRID = 50
 BOX = 0.1  # metres
@@ -112,34 +110,3 @@ def run_bench(sizes: list[int], frames: int, mem_frames: int, devices: list[str]
                 row["peak_mem_mb"] = peak_memory_mb(n, device, mem_frames)
             cases.append(row)
     return cases
-
-
-def register(app: typer.Typer) -> None:
-    """Add ``mpm`` to the ``bench`` sub-app."""
-
-    @app.command("mpm")
-    @user_errors
-    def mpm_cmd(
-        json_path: Path | None = typer.Option(None, "--json", help="Write the table as JSON {\"cases\": [...]} here."),
-        sizes: str = typer.Option("8000,32768,128000", help="Particle counts (comma separated)."),
-        frames: int = typer.Option(2, help="Frames (25 substeps each) timed per case."),
-        mem_frames: int = typer.Option(20, help="Frames of the full-mode memory run at 32k particles."),
-        no_memory: bool = typer.Option(False, "--no-memory", help="Skip the full-mode peak-memory run."),
-        device: str = typer.Option("auto", help="cpu, cuda, or auto (cpu plus cuda when available)."),
-    ) -> None:
-        """Forward / backward throughput of the MPM simulator and full-mode peak memory."""
-        import warp as wp
-
-        from endogsim.warp_runtime import init_warp
-
-        init_warp()
-        devices = ["cpu", "cuda"] if device == "auto" and wp.is_cuda_available() else (["cpu"] if device == "auto" else [device])
-        counts = [int(s) for s in sizes.split(",") if s.strip()]
-        cases = run_bench(counts, frames, mem_frames, devices, memory=not no_memory)
-        cols = ["device", "particles", "grid", "forward_pss", "backward_pss", "backward_over_forward", "peak_mem_mb"]
-        labels = ["device", "particles", "grid", "fwd p-sub/s", "fwd+bwd p-sub/s", "bwd/fwd", f"peak MB ({mem_frames} fr full)"]
-        print_table("MLS-MPM (Warp): particle-substeps/s, backward in frame mode", labels,
-                    [[("-" if c[k] is None else c[k]) for k in cols] for c in cases])
-        if json_path is not None:
-            write_json_atomic(json_path, {"cases": cases})
-            console.print(f"wrote {json_path}")

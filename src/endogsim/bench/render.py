@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import typer
 
 CASES = [(5_000, 160, 128), (50_000, 320, 256), (200_000, 640, 512)]
 
@@ -139,35 +138,3 @@ def run_case_subprocess(n: int, width: int, height: int, backend: str, repeats: 
 
         raise EndoGSimError(f"benchmark case {n} Gaussians @ {width}x{height} ({backend}) failed: {proc.stderr[-2000:]}")
     return json.loads(lines[-1][2:])
-
-
-def register(app: typer.Typer) -> None:
-    """Add ``bench render`` to the ``bench`` sub-app."""
-    from endogsim.cli.common import print_table, progress, user_errors, write_json_atomic
-
-    @app.command("render")
-    @user_errors
-    def bench_render(
-        json_path: Path = typer.Option(None, "--json", help="Also write the results to this JSON file."),
-        repeats: int = typer.Option(3, help="Timed repetitions per case (median reported), after one warm-up."),
-        max_gaussians: int = typer.Option(200_000, help="Skip cases with more Gaussians than this."),
-    ) -> None:
-        """Forward and forward+backward time and peak memory of the renderer (5k/50k/200k Gaussians)."""
-        from endogsim.gaussians.backend_gsplat import available
-
-        backends = ["torch", "warp"] + (["gsplat"] if available() else [])
-        todo = [(b, *c) for b in backends for c in CASES if c[0] <= max_gaussians]
-        results = []
-        with progress() as bar:
-            task = bar.add_task("bench render", total=len(todo))
-            for backend, n, w, h in todo:
-                results.append(run_case_subprocess(n, w, h, backend, repeats))
-                bar.advance(task)
-        print_table(
-            "Gaussian renderer (peak memory: CPU = process peak RSS incl. ~0.3 GB for python+torch; CUDA = max allocated)",
-            ["backend", "gaussians", "resolution", "forward s", "fwd+bwd s", "peak MB", "pairs"],
-            [(r["backend"], r["gaussians"], f"{r['width']}x{r['height']}", r["forward_s"], r["forward_backward_s"],
-              r["peak_mem_mb"], r["pairs"]) for r in results],
-        )
-        if json_path is not None:
-            write_json_atomic(json_path, {"cases": results, "threads": torch.get_num_threads()})

@@ -22,12 +22,9 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Optional
 
-import typer
 
 from endogsim.bench.identify import SCENES_CACHE
-from endogsim.cli.common import user_errors
 from endogsim.errors import EndoGSimError
 
 __all__ = ["run_scene", "run_suite", "suite_tables"]
@@ -216,43 +213,3 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
                    "columns": ["init", "optimisation", "RE", "EPE (px)", "FID"], "rows": rows3},
         "ablation": abl,
     }
-
-
-def register(bench_app: typer.Typer) -> None:
-    """Add ``suite`` to the ``bench`` sub-app."""
-
-    @bench_app.command("suite")
-    @user_errors
-    def bench_suite(
-        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write settings, per-scene runs and tables as JSON."),
-        ray: bool = typer.Option(False, "--ray", help="Run the scenes in parallel as Ray tasks (a local cluster "
-                                 "unless --ray-address is given)."),
-        ray_address: Optional[str] = typer.Option(None, "--ray-address",
-                                                  help="Ray cluster address (e.g. ray://host:10001 or auto); implies --ray."),
-        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but tiny)."),
-        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations of the optimised runs (default 30; quick 2)."),
-        frames: Optional[int] = typer.Option(None, "--frames", help="Frames per synthesized scene (default: the suite's)."),
-        quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
-        fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
-        threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
-        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
-                                        help="Where scenes are synthesized (reused)."),
-        work_dir: Path = typer.Option(Path("bench_suite_runs"), "--work-dir", help="Run folders."),
-    ) -> None:
-        """The benchmark suite: Table 2 (RE/EPE per scene), Table 3 (init x optimisation, RE/EPE/FID) and the
-        material-field ablation."""
-        from endogsim.cli.common import console, print_table, write_json_atomic
-
-        use_ray = ray or ray_address is not None
-        address = ray_address
-        res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
-                        frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
-                        ray_address=address, threads=threads, log=console.print)
-        for t in res["tables"].values():
-            print_table(t["title"], t["columns"], t["rows"])
-            if t.get("note"):
-                console.print(f"  ({t['note']})")
-        console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'})")
-        if json_out is not None:
-            write_json_atomic(json_out, res)
-            console.print(f"wrote {json_out}")

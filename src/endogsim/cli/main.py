@@ -29,18 +29,12 @@ def _main(version: bool = typer.Option(False, "--version", help="Print the versi
 
 def _register() -> None:
     # Each module owns its commands; importing it must stay cheap (heavy imports inside commands).
-    from endogsim.cli import demo, identify, info, materials, reconstruct, synth  # noqa: F401
-    from endogsim.cli import simulate as simulate_cli  # noqa: F401
-    from endogsim.bench import suite as bench_suite  # noqa: F401
-    from endogsim.bench import identify as bench_identify, mpm as bench_mpm, render as bench_render  # noqa: F401
+    from endogsim.cli import bench, demo, identify, info, materials, reconstruct, simulate, synth
 
-    for module in (info, demo, synth, reconstruct, identify):  # demo also adds `run`
+    for module in (info, demo, synth, reconstruct, identify, simulate):  # demo also adds `run`
         module.register(app)
-    simulate_cli.register(app)
     materials.register(materials_app)
-    for bench in (bench_render, bench_mpm, bench_identify):
-        bench.register(bench_app)
-    bench_suite.register(bench_app)
+    bench.register(bench_app)
 
 
 _register()

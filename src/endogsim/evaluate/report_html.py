@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from endogsim.errors import DataError, ModelError
+from endogsim.io.atomic import write_text_atomic
 
 __all__ = ["write_report", "read_video", "comparison_panels"]
 
@@ -249,7 +250,5 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
     doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
            f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(doc, encoding="utf-8")
-    tmp.replace(out)
+    write_text_atomic(out, doc)
     return out

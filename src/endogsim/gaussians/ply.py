@@ -9,7 +9,6 @@ so common splat viewers open the files; they ignore ``object_id``.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from plyfile import PlyData, PlyElement
 
 from endogsim.errors import ModelError
 from endogsim.gaussians.model import Gaussians, sh_degree_from_count
+from endogsim.io.atomic import atomic_path
 
 
 def write_ply(gaussians: Gaussians, path: str | os.PathLike) -> Path:
@@ -40,15 +40,8 @@ def write_ply(gaussians: Gaussians, path: str | os.PathLike) -> Path:
     for name, col in columns.items():
         data[name] = col.float().numpy()
     data["object_id"] = g.object_ids.numpy().astype(np.int32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".ply.tmp")
-    os.close(fd)
-    try:
-        PlyData([PlyElement.describe(data, "vertex")]).write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp))
     return path
 
 

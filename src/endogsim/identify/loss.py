@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from endogsim.identify.forward import Rendered
+from endogsim.io.atomic import save_npz_atomic
 
 __all__ = ["Observations", "make_observations", "observed_flow", "identification_loss"]
 
@@ -101,11 +102,8 @@ def observed_flow(frames: np.ndarray, estimator: str = "dis_fine", weights: str 
         est = get_flow_estimator(estimator, **({} if estimator != "raft" else {"weights": weights}))
     flow = est.estimate_sequence(frames).astype(np.float32)
     if cache is not None:
-        cache = Path(cache)
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.name + ".tmp.npz")
-        np.savez_compressed(tmp, flow=flow, key=np.array(key), meta=np.array(json.dumps({"estimator": estimator})))
-        tmp.replace(cache)
+        save_npz_atomic(cache, compressed=True, flow=flow, key=np.array(key),
+                        meta=np.array(json.dumps({"estimator": estimator})))
     return flow
 
 

@@ -17,7 +17,6 @@ every iteration and a run resumes from it (same settings) after an interruption,
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.forward import material_tables, render_sequence, simulate_materials
 from endogsim.identify.loss import Observations, identification_loss, make_observations, observed_flow
 from endogsim.identify.problem import IdentifyProblem
+from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams
 from endogsim.physics import max_stable_E
 
@@ -153,12 +153,6 @@ def _values(params: MaterialParams) -> tuple[dict[str, float], dict[str, float]]
     E = params.E().detach().tolist()
     nu = params.nu().detach().tolist()
     return ({str(o): E[params.slot(o)] for o in params.object_ids}, {str(o): nu[params.slot(o)] for o in params.object_ids})
-
-
-def _atomic_torch_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def _signature(problem: IdentifyProblem, init: MaterialField, config: IdentifyConfig) -> dict:
@@ -304,7 +298,7 @@ def identify(
         history.append(rec)
         done_here += 1
         if ckpt_path is not None:
-            _atomic_torch_save({"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
+            save_torch_atomic({"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
                                 "log10_E": params.log10_E.detach().clone(), "nu_raw": params.nu_raw.detach().clone(),
                                 "optimizer": opt.state_dict(), "history": history, "best": best,
                                 "seconds": seconds, "stale": stale}, ckpt_path)

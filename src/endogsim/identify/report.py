@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endogsim.cli.common import write_json_atomic
+from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
@@ -162,7 +162,5 @@ def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: Identif
         lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; mean {re['re_mean']:.3f}")
     lines.append(f"EPE {ev.epe:.3f} px, PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
     lines += [f"note: {n}" for n in result.notes]
-    tmp = run / "summary.txt.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(run / "summary.txt")
+    write_text_atomic(run / "summary.txt", "\n".join(lines) + "\n")
     return metrics

@@ -1,8 +1,23 @@
-"""Scene I/O: dataset loaders, label tables and video writing."""
+"""Scene I/O: dataset formats and loaders, label tables, atomic writes and video writing.
 
-from endogsim.io.loaders import detect_format, load_cholecseg8k, load_endonerf, load_scene, load_video
-from endogsim.io.scene import ObjectLabel, Scene
-from endogsim.io.video_writer import write_frames_png, write_video
+Names load lazily (PEP 562): lower layers import :mod:`endogsim.io.atomic` without pulling in OpenCV.
+"""
 
-__all__ = ["Scene", "ObjectLabel", "load_scene", "load_endonerf", "load_cholecseg8k", "load_video",
-           "detect_format", "write_video", "write_frames_png"]
+from importlib import import_module
+
+_EXPORTS = {
+    "Scene": "scene", "ObjectLabel": "scene",
+    "load_scene": "loaders", "load_endonerf": "loaders", "load_cholecseg8k": "loaders", "load_video": "loaders",
+    "detect_format": "loaders",
+    "write_video": "video_writer", "write_frames_png": "video_writer",
+    "write_json_atomic": "atomic", "save_torch_atomic": "atomic", "save_npz_atomic": "atomic",
+    "write_text_atomic": "atomic", "atomic_path": "atomic", "atomic_folder": "atomic",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(f"endogsim.io.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'endogsim.io' has no attribute {name!r}")

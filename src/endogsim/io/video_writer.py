@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from endogsim.errors import DataError
+from endogsim.io.atomic import atomic_path
 
 
 def _to_uint8(frames) -> np.ndarray:
@@ -44,22 +44,15 @@ def write_video(frames, path: str | os.PathLike, fps: float = 25.0, quality: int
     ph, pw = h % 2, w % 2
     if ph or pw:
         f = np.pad(f, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp" + (path.suffix or ".mp4"))
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=path.suffix or ".mp4") as tmp:
         writer = imageio_ffmpeg.write_frames(
-            tmp, (w + pw, h + ph), fps=float(fps), codec="libx264", pix_fmt_out="yuv420p",
+            str(tmp), (w + pw, h + ph), fps=float(fps), codec="libx264", pix_fmt_out="yuv420p",
             quality=quality, macro_block_size=1, ffmpeg_log_level="error",
         )
         writer.send(None)
         for frame in f:
             writer.send(np.ascontiguousarray(frame))
         writer.close()
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return path
 
 
@@ -73,9 +66,8 @@ def write_frames_png(frames, folder: str | os.PathLike, pattern: str = "frame_{:
     out = []
     for i, frame in enumerate(_to_uint8(frames)):
         p = folder / pattern.format(i)
-        tmp = p.with_name(p.name + ".tmp.png")
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(frame[..., ::-1])):
-            raise DataError(f"{p}: could not write PNG")
-        os.replace(tmp, p)
+        with atomic_path(p) as tmp:
+            if not cv2.imwrite(str(tmp), np.ascontiguousarray(frame[..., ::-1])):
+                raise DataError(f"{p}: could not write PNG")
         out.append(p)
     return out

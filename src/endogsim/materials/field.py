@@ -17,6 +17,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from endogsim.errors import MaterialError
+from endogsim.io.atomic import write_json_atomic
 
 MaterialModel = Literal["fixed_corotated", "neo_hookean", "rigid", "fluid"]
 Regime = Literal["in_vivo", "ex_vivo_tensile"]
@@ -152,7 +153,6 @@ class MaterialField:
         return cls(recs, meta=dict(obj.get("meta") or {}))
 
     def save(self, path: str | Path) -> Path:
-        from endogsim.cli.common import write_json_atomic
 
         return write_json_atomic(path, self.to_json())
 

@@ -32,6 +32,7 @@ from pydantic import BaseModel, Field, ValidationError
 from endogsim.errors import MaterialError
 from endogsim.materials.field import MaterialRecord
 from endogsim.materials.prior import prior_entry, prior_record
+from endogsim.io.atomic import write_json_atomic
 
 PROMPT_VERSION = "endogsim-material-v1"
 API_KEY_ENVS = ("ENDOGSIM_MLLM_API_KEY", "OPENAI_API_KEY")
@@ -295,7 +296,6 @@ def read_cache(cache_dir: str | Path, key: str) -> dict | None:
 
 def write_cache(cache_dir: str | Path, key: str, entry: dict, api_key: str | None = None) -> None:
     """Atomic JSON write; every string is scrubbed of the API key first (a server could echo it)."""
-    from endogsim.cli.common import write_json_atomic
 
     write_json_atomic(_cache_path(cache_dir, key), json.loads(scrub(json.dumps(entry), api_key)))
 

@@ -13,6 +13,7 @@ Outputs in OUT: ``render.mp4`` and ``frames/`` (the observed video, slowed to at
 from __future__ import annotations
 
 import time
+from endogsim.io.atomic import write_json_atomic
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,7 +51,6 @@ class DemoConfig:
 def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
              on_stage: Callable[[str, str], None] | None = None) -> dict:
     """Run (or resume) the demo into ``out``; returns the summary (also written to ``out/summary.json``)."""
-    from endogsim.cli.common import write_json_atomic
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import PipelineConfig, run_pipeline

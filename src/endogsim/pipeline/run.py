@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from endogsim.errors import DataError
+from endogsim.io.atomic import write_json_atomic
 
 __all__ = ["PipelineConfig", "run_pipeline", "STAGES"]
 
@@ -79,7 +80,6 @@ def run_pipeline(
         on_stage: callback(stage, "start" | "done" | "skip") for progress display.
         stop_after: test hook: stop after this stage.
     """
-    from endogsim.cli.common import write_json_atomic
 
     cfg = config or PipelineConfig()
     data, out = Path(data), Path(out)

@@ -33,6 +33,7 @@ import torch
 
 from endogsim.errors import DataError
 from endogsim.gaussians.model import Gaussians
+from endogsim.io.atomic import atomic_folder, write_json_atomic
 
 __all__ = ["ScenarioDefaults", "scene_from_reconstruction", "fit_tool_capsule"]
 
@@ -133,7 +134,6 @@ def scene_from_reconstruction(
     """
     import cv2
 
-    from endogsim.cli.common import write_json_atomic
     from endogsim.gaussians.ply import write_ply
     from endogsim.io import load_scene
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
@@ -230,44 +230,39 @@ def scene_from_reconstruction(
         scenario["identification"]["substeps"] = sub
         scenario["identification"]["dt"] = frame_dt / sub
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.exists():
-        if not (out / "scene.json").is_file() and any(out.iterdir()):
-            raise DataError(f"{out} exists and is not a scene folder; choose another output folder")
-        shutil.rmtree(out)
-    tmp = out.with_name(f".{out.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "images").mkdir(parents=True)
+    if out.exists() and not (out / "scene.json").is_file() and any(out.iterdir()):
+        raise DataError(f"{out} exists and is not a scene folder; choose another output folder")
     files = {"images": "images/frame-%06d.color.png", "gaussians_t0": "gaussians_t0.ply"}
-    for t in range(T):
-        rgb8 = (np.clip(frames[t], 0, 1) * 255 + 0.5).astype(np.uint8)
-        cv2.imwrite(str(tmp / "images" / f"frame-{t:06d}.color.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
-    if masks is not None:
-        (tmp / "object_masks").mkdir()
-        files["object_masks"] = "object_masks/frame-%06d.png"
+    with atomic_folder(out) as tmp:
+        (tmp / "images").mkdir()
         for t in range(T):
-            cv2.imwrite(str(tmp / "object_masks" / f"frame-{t:06d}.png"), np.clip(masks[t], 0, 65535).astype(np.uint16))
-    if gt is not None and gt.files.get("flow") and (Path(truth) / (gt.files["flow"] % 0)).is_file():
-        (tmp / "flow").mkdir()
-        for key in ("flow", "flow_valid"):
-            pat = gt.files.get(key)
-            if not pat:
-                continue
-            files[key] = pat
-            for t in range(T - 1):
-                src = Path(truth) / (pat % t)
-                if src.is_file():
-                    shutil.copyfile(src, tmp / (pat % t))
-    write_ply(g0.detach(), tmp / "gaussians_t0.ply")
-    K = cam.K.double().tolist()
-    doc = {
-        "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0, "frames": T, "objects": objects,
-        "scenario": scenario,
-        "camera": {"K": K, "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist()},
-        "depth_scale": gt.depth_scale if gt is not None else 10000.0, "files": files,
-        "source": "reconstruction+truth" if gt is not None else "reconstruction",
-        "reconstruction": str(recon_run), "data": str(data), "tool_motion": tool_motion,
-    }
-    write_json_atomic(tmp / "scene.json", doc)
-    tmp.replace(out)
+            rgb8 = (np.clip(frames[t], 0, 1) * 255 + 0.5).astype(np.uint8)
+            cv2.imwrite(str(tmp / "images" / f"frame-{t:06d}.color.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
+        if masks is not None:
+            (tmp / "object_masks").mkdir()
+            files["object_masks"] = "object_masks/frame-%06d.png"
+            for t in range(T):
+                cv2.imwrite(str(tmp / "object_masks" / f"frame-{t:06d}.png"), np.clip(masks[t], 0, 65535).astype(np.uint16))
+        if gt is not None and gt.files.get("flow") and (Path(truth) / (gt.files["flow"] % 0)).is_file():
+            (tmp / "flow").mkdir()
+            for key in ("flow", "flow_valid"):
+                pat = gt.files.get(key)
+                if not pat:
+                    continue
+                files[key] = pat
+                for t in range(T - 1):
+                    src = Path(truth) / (pat % t)
+                    if src.is_file():
+                        shutil.copyfile(src, tmp / (pat % t))
+        write_ply(g0.detach(), tmp / "gaussians_t0.ply")
+        K = cam.K.double().tolist()
+        doc = {
+            "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0, "frames": T, "objects": objects,
+            "scenario": scenario,
+            "camera": {"K": K, "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist()},
+            "depth_scale": gt.depth_scale if gt is not None else 10000.0, "files": files,
+            "source": "reconstruction+truth" if gt is not None else "reconstruction",
+            "reconstruction": str(recon_run), "data": str(data), "tool_motion": tool_motion,
+        }
+        write_json_atomic(tmp / "scene.json", doc)
     return out

@@ -43,6 +43,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from endogsim.errors import DataError, MaterialError, SimulationError
 from endogsim.materials.field import MaterialField
+from endogsim.io.atomic import write_json_atomic
 
 __all__ = ["Interaction", "ToolSpec", "ForceSpec", "GraspSpec", "builtin_interactions", "load_interaction",
            "resolve_scene", "simulate_interaction", "covariance_to_scale_rot"]
@@ -414,7 +415,6 @@ def simulate_interaction(
         DataError (bad scene / interaction), MaterialError (materials), SimulationError (unstable or
         diverged simulation).
     """
-    from endogsim.cli.common import write_json_atomic
     from endogsim.gaussians.ply import write_ply
     from endogsim.identify.forward import frame_gaussians, material_tables, render_sequence
     from endogsim.identify.problem import load_problem

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +42,7 @@ from endogsim.recon.deformation import DeformationField
 from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.tools import ToolMotion
 
-__all__ = ["compose_at", "Reconstruction", "ReconResult", "load_reconstruction", "save_torch_atomic"]
+__all__ = ["compose_at", "Reconstruction", "ReconResult", "load_reconstruction"]
 
 
 def compose_at(tissue: Gaussians, tools: Gaussians | None, deformation: DeformationField | None,
@@ -64,21 +63,6 @@ def compose_at(tissue: Gaussians, tools: Gaussians | None, deformation: Deformat
         moved = motion.apply(tools, frame) if motion is not None else tools
         g = Gaussians.concat([g, moved])
     return g
-
-
-def save_torch_atomic(obj, path: str | os.PathLike) -> Path:
-    """``torch.save`` through a temporary file and a rename (no half-written checkpoints)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".pt.tmp")
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
 
 
 #: ReconResult attribute -> file name in the run folder.

@@ -61,7 +61,8 @@ from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
 from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.init import initial_gaussians
-from endogsim.recon.model import ReconResult, compose_at, save_torch_atomic
+from endogsim.io.atomic import save_npz_atomic, save_torch_atomic, write_json_atomic
+from endogsim.recon.model import ReconResult, compose_at
 from endogsim.recon.params import GaussianParams, log_linear_lr
 from endogsim.recon.tools import ToolMotion
 
@@ -601,7 +602,6 @@ class Trainer:
 
     def export(self) -> dict:
         """Write every run output (see :mod:`endogsim.recon.model`) and return the metrics."""
-        from endogsim.cli.common import write_json_atomic
         from endogsim.gaussians.ply import write_ply
 
         out, sc = self.out, self.prep.scene
@@ -645,9 +645,7 @@ class Trainer:
                           "frame of frame 0 (of the fixed endoscope, or of a moving one: see camera_poses), metres",
             "camera_poses": None if self.camera_motion is None
             else self.camera_motion.transforms()[0].detach().cpu().tolist(), "times": self.times.tolist(), "tools": traj})
-        tmp = out / "tool_trajectories.tmp.npz"
-        np.savez(tmp, times=self.times.numpy(), **arrays)
-        tmp.replace(out / "tool_trajectories.npz")
+        save_npz_atomic(out / "tool_trajectories.npz", times=self.times.numpy(), **arrays)
 
         per_frame = ev.pop("per_frame")
         metrics = {
@@ -713,8 +711,6 @@ def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | Non
         trainer.load_state(st)
     else:
         trainer.init_fresh()
-    from endogsim.cli.common import write_json_atomic
-
     write_json_atomic(out / "config.json", cfg.to_dict())
     trainer.run(progress, stop_after)
     metrics = trainer.export()

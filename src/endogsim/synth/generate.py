@@ -26,8 +26,6 @@ i.e. exactly the quantity identification compares against.
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,6 +36,7 @@ from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
+from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
     Anchor,
     MPMConfig,
@@ -183,15 +182,13 @@ def _scene_truth(b: BuiltScene, seed: int) -> SceneTruth:
 
 def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path:
     """Write the rendered scene ``r`` (from :func:`render_built`) into ``out_dir`` atomically (a temporary
-    sibling folder renamed into place)."""
+    sibling folder renamed into place; a previous scene folder there is replaced)."""
     import cv2
 
-    from endogsim.cli.common import write_json_atomic
-
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp"))
-    try:
+    if out_dir.exists() and not (out_dir / "scene.json").exists() and any(out_dir.iterdir()):
+        raise DataError(f"{out_dir} exists and is not a synthesized scene folder; choose another --out")
+    with atomic_folder(out_dir) as tmp:
         for sub in ("images", "depth", "masks", "object_masks", "flow"):
             (tmp / sub).mkdir()
         rigid = {o.id for o in b.objects if o.rigid}
@@ -221,14 +218,6 @@ def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path
         d = truth.to_json()
         d.update({k: v for k, v in b.extra.items() if k not in d})
         write_json_atomic(tmp / "scene.json", d)
-        if out_dir.exists():
-            if not (out_dir / "scene.json").exists() and any(out_dir.iterdir()):
-                raise DataError(f"{out_dir} exists and is not a synthesized scene folder; choose another --out")
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
 
 

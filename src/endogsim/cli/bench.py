@@ -1,0 +1,138 @@
+"""``endogsim bench ...``: the benchmark commands. Each prints a table and, with ``--json``, writes it.
+
+The measurements live in :mod:`endogsim.bench` (render, mpm, identify, suite); this module only parses the
+options, shows progress and prints.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from endogsim.bench.identify import SCENES_CACHE
+from endogsim.cli.common import console, print_table, progress, user_errors
+from endogsim.io.atomic import write_json_atomic
+
+
+def register(bench_app: typer.Typer) -> None:
+    """Add ``render``, ``mpm``, ``identify`` and ``suite`` to the ``bench`` sub-app."""
+
+    @bench_app.command("render")
+    @user_errors
+    def bench_render(
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Also write the results to this JSON file."),
+        repeats: int = typer.Option(3, help="Timed repetitions per case (median reported), after one warm-up."),
+        max_gaussians: int = typer.Option(200_000, help="Skip cases with more Gaussians than this."),
+    ) -> None:
+        """Forward and forward+backward time and peak memory of the renderer (5k/50k/200k Gaussians)."""
+        import torch
+
+        from endogsim.bench.render import CASES, run_case_subprocess
+        from endogsim.gaussians.backend_gsplat import available
+
+        backends = ["torch", "warp"] + (["gsplat"] if available() else [])
+        todo = [(b, *c) for b in backends for c in CASES if c[0] <= max_gaussians]
+        results = []
+        with progress() as bar:
+            task = bar.add_task("bench render", total=len(todo))
+            for backend, n, w, h in todo:
+                results.append(run_case_subprocess(n, w, h, backend, repeats))
+                bar.advance(task)
+        print_table(
+            "Gaussian renderer (peak memory: CPU = process peak RSS incl. ~0.3 GB for python+torch; CUDA = max allocated)",
+            ["backend", "gaussians", "resolution", "forward s", "fwd+bwd s", "peak MB", "pairs"],
+            [(r["backend"], r["gaussians"], f"{r['width']}x{r['height']}", r["forward_s"], r["forward_backward_s"],
+              r["peak_mem_mb"], r["pairs"]) for r in results],
+        )
+        if json_path is not None:
+            write_json_atomic(json_path, {"cases": results, "threads": torch.get_num_threads()})
+
+    @bench_app.command("mpm")
+    @user_errors
+    def bench_mpm(
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write the table as JSON {\"cases\": [...]} here."),
+        sizes: str = typer.Option("8000,32768,128000", help="Particle counts (comma separated)."),
+        frames: int = typer.Option(2, help="Frames (25 substeps each) timed per case."),
+        mem_frames: int = typer.Option(20, help="Frames of the full-mode memory run at 32k particles."),
+        no_memory: bool = typer.Option(False, "--no-memory", help="Skip the full-mode peak-memory run."),
+        device: str = typer.Option("auto", help="cpu, cuda, or auto (cpu plus cuda when available)."),
+    ) -> None:
+        """Forward / backward throughput of the MPM simulator and full-mode peak memory."""
+        import warp as wp
+
+        from endogsim.bench.mpm import run_bench
+        from endogsim.warp_runtime import init_warp
+
+        init_warp()
+        devices = ["cpu", "cuda"] if device == "auto" and wp.is_cuda_available() else (["cpu"] if device == "auto" else [device])
+        counts = [int(s) for s in sizes.split(",") if s.strip()]
+        cases = run_bench(counts, frames, mem_frames, devices, memory=not no_memory)
+        cols = ["device", "particles", "grid", "forward_pss", "backward_pss", "backward_over_forward", "peak_mem_mb"]
+        labels = ["device", "particles", "grid", "fwd p-sub/s", "fwd+bwd p-sub/s", "bwd/fwd", f"peak MB ({mem_frames} fr full)"]
+        print_table("MLS-MPM (Warp): particle-substeps/s, backward in frame mode", labels,
+                    [[("-" if c[k] is None else c[k]) for k in cols] for c in cases])
+        if json_path is not None:
+            write_json_atomic(json_path, {"cases": cases})
+            console.print(f"wrote {json_path}")
+
+    @bench_app.command("identify")
+    @user_errors
+    def bench_identify(
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the tables and runs as JSON."),
+        quick: bool = typer.Option(False, "--quick", help="tiny (and a small two_tissues), 6 iterations (minutes on CPU)."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per optimised run."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Identify from the first N frames only."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated scenes for the tables."),
+        tables: Optional[str] = typer.Option(None, "--tables", help="Comma-separated subset of init,field,loss,grad."),
+        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
+                                        help="Where benchmark scenes are synthesized (reused)."),
+        work_dir: Path = typer.Option(Path("bench_identify_runs"), "--work-dir", help="Run folders of the ablations."),
+    ) -> None:
+        """Identification ablations: init x optimisation, material field vs global, loss, gradient mode."""
+        from endogsim.bench.identify import run_bench
+
+        res = run_bench(scenes_dir, work_dir, quick=quick, iters=iters, frames=frames,
+                        scenes=scenes.split(",") if scenes else None, tables=tables.split(",") if tables else None,
+                        log=console.print)
+        for t in res["tables"].values():
+            print_table(t["title"], t["columns"], t["rows"])
+        if json_out is not None:
+            write_json_atomic(json_out, res)
+            console.print(f"wrote {json_out}")
+
+    @bench_app.command("suite")
+    @user_errors
+    def bench_suite(
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write settings, per-scene runs and tables as JSON."),
+        ray: bool = typer.Option(False, "--ray", help="Run the scenes in parallel as Ray tasks (a local cluster "
+                                 "unless --ray-address is given)."),
+        ray_address: Optional[str] = typer.Option(None, "--ray-address",
+                                                  help="Ray cluster address (e.g. ray://host:10001 or auto); implies --ray."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but tiny)."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations of the optimised runs (default 30; quick 2)."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Frames per synthesized scene (default: the suite's)."),
+        quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
+        fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
+        threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
+        scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
+                                        help="Where scenes are synthesized (reused)."),
+        work_dir: Path = typer.Option(Path("bench_suite_runs"), "--work-dir", help="Run folders."),
+    ) -> None:
+        """The benchmark suite: Table 2 (RE/EPE per scene), Table 3 (init x optimisation, RE/EPE/FID) and the
+        material-field ablation."""
+        from endogsim.bench.suite import run_suite
+
+        use_ray = ray or ray_address is not None
+        res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
+                        frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
+                        ray_address=ray_address, threads=threads, log=console.print)
+        for t in res["tables"].values():
+            print_table(t["title"], t["columns"], t["rows"])
+            if t.get("note"):
+                console.print(f"  ({t['note']})")
+        console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'})")
+        if json_out is not None:
+            write_json_atomic(json_out, res)
+            console.print(f"wrote {json_out}")

@@ -1,0 +1,103 @@
+"""Atomic writes: a reader (or a resumed run) never sees half a file or half a folder.
+
+Every writer goes through :func:`atomic_path`: the content is written to a temporary file in the same
+folder, then renamed onto the destination (``os.replace`` is atomic on one file system); on any error the
+temporary file is removed and the destination is left as it was. :func:`atomic_folder` does the same for a
+whole folder (a temporary sibling renamed into place).
+
+    with atomic_path(out / "video.mp4") as tmp:      # tmp keeps the suffix, so encoders pick the format
+        encode(tmp)
+    write_json_atomic(out / "metrics.json", metrics)
+    save_torch_atomic(state, out / "checkpoint.pt")
+    save_npz_atomic(out / "flow.npz", flow=flow, key=np.array(key))
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+__all__ = ["atomic_path", "atomic_folder", "write_json_atomic", "write_text_atomic", "save_torch_atomic",
+           "save_npz_atomic"]
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """A temporary path beside ``path`` that becomes ``path`` when the block succeeds.
+
+    The temporary file ends in ``suffix`` (default: ``path``'s own), so writers that pick the format from
+    the name (encoders, image writers) do the right thing. The parent folder is created. On an exception
+    the temporary file is removed and the exception re-raised.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{suffix}")
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+@contextmanager
+def atomic_folder(path: str | os.PathLike, replace: bool = True) -> Iterator[Path]:
+    """A temporary sibling folder that replaces ``path`` when the block succeeds.
+
+    Args:
+        path: destination folder.
+        replace: remove an existing ``path`` before the rename (else the rename fails if it exists).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.tmp"))
+    try:
+        yield tmp
+        if replace and path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(obj, f, indent=2)
+    return Path(path)
+
+
+def save_torch_atomic(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically (no half-written checkpoints)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+    return Path(path)
+
+
+def save_npz_atomic(path: str | os.PathLike, compressed: bool = False, **arrays: Any) -> Path:
+    """``np.savez`` (or ``savez_compressed``) of ``arrays`` to ``path`` (``.npz``) atomically."""
+    import numpy as np
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:  # a file object: numpy adds no ".npz" to the name
+        (np.savez_compressed if compressed else np.savez)(f, **arrays)
+    return Path(path)
