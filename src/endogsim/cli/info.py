@@ -17,7 +17,7 @@ def info(
     max_frames: int = typer.Option(None, "--max-frames", help="Read only the first N frames."),
 ) -> None:
     """Print format, resolution, timing, intrinsics, depth and per-object statistics of DATA."""
-    from endogsim.io.loaders import detect_format, load_scene
+    from endogsim.io.formats import detect_format, load_scene
 
     fmt = detect_format(data)
     s = load_scene(data, downscale=downscale, max_frames=max_frames)

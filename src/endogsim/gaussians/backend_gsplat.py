@@ -18,7 +18,7 @@ import functools
 
 import torch
 
-from endogsim.gaussians.rasterize_torch import RasterConfig
+from endogsim.gaussians.types import RasterConfig, RenderOutput
 
 
 @functools.lru_cache(maxsize=1)
@@ -58,11 +58,9 @@ def rasterize_gsplat(
         features: [N, F] extra channels or None.
         background: [3] RGB.
     Returns:
-        :class:`endogsim.gaussians.render.RenderOutput`.
+        :class:`endogsim.gaussians.types.RenderOutput`.
     """
     from gsplat import rasterization
-
-    from endogsim.gaussians.render import RenderOutput
 
     n_feat = 0 if features is None else features.shape[1]
     colors = rgb if features is None else torch.cat([rgb, features.to(rgb.dtype)], 1)

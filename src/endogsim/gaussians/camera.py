@@ -41,6 +41,11 @@ class Camera:
     height: int
     viewmat: torch.Tensor = field(default_factory=lambda: torch.eye(4))
 
+    def center(self) -> torch.Tensor:
+        """[3] camera centre in world coordinates (metres): -R^T t of the world-to-camera ``viewmat``."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (0.5 halves width and height)."""
         K = self.K.clone()

@@ -25,8 +25,9 @@ import torch
 from endogsim.errors import ModelError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import covariance_from_scale_rot
-from endogsim.gaussians.rasterize_torch import RasterConfig, project_gaussians
-from endogsim.gaussians.render import Backend, RenderOutput, rasterize
+from endogsim.gaussians.rasterize_torch import project_gaussians
+from endogsim.gaussians.render import Backend, rasterize
+from endogsim.gaussians.types import RasterConfig, RenderOutput
 
 FLOW_CHANNELS = 6  # M00 M01 M10 M11 b0 b1
 _FLOW_EPS = 1e-6  # pixels^2 added to both 2D covariances so the inverse square root of a needle stays finite

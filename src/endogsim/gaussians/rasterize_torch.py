@@ -30,31 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
-
-@dataclass(frozen=True)
-class RasterConfig:
-    """Numerical conventions shared by every backend (they match gsplat's defaults, classic mode).
-
-    Attributes:
-        eps2d: dilation added to the 2D covariance (pixels^2); 0.3 makes every splat at least ~1 px wide.
-        near_plane: Gaussians closer than this camera depth are culled (metres).
-        far_plane: Gaussians farther than this camera depth are culled (metres).
-        radius_clip: Gaussians whose 2D radius is <= this in both axes are culled (pixels).
-        alpha_min: pairs with alpha below this are skipped (1/255).
-        alpha_max: alpha is clamped to this (0.99) so 1 - alpha never vanishes.
-        transmittance_min: compositing stops before the transmittance would drop to this (1e-4).
-        max_pairs_per_chunk: bound on (pixel, Gaussian) pairs composited at once; sets the transient
-            memory (~150 bytes per pair of a band).
-    """
-
-    eps2d: float = 0.3
-    near_plane: float = 1e-3
-    far_plane: float = 1e10
-    radius_clip: float = 0.0
-    alpha_min: float = 1.0 / 255.0
-    alpha_max: float = 0.99
-    transmittance_min: float = 1e-4
-    max_pairs_per_chunk: int = 2_000_000
+from endogsim.gaussians.types import RasterConfig
 
 
 @dataclass

@@ -31,7 +31,7 @@ from typing import Any
 import torch
 import warp as wp
 
-from endogsim.gaussians.rasterize_torch import RasterConfig
+from endogsim.gaussians.types import RasterConfig
 from endogsim.warp_runtime import float_vector, launch_split, n_bands, warp_array as _wp, warp_device
 
 __all__ = ["TILE_SIZE", "TileBins", "bin_gaussians", "rasterize_warp"]

@@ -28,48 +28,21 @@ Example::
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 
 from endogsim.errors import ModelError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, covariance_from_scale_rot
-from endogsim.gaussians.rasterize_torch import RasterConfig, build_pairs, project_gaussians, rasterize_torch
+from endogsim.gaussians.rasterize_torch import build_pairs, project_gaussians, rasterize_torch
 from endogsim.gaussians.rasterize_warp import bin_gaussians, rasterize_warp
 from endogsim.gaussians.sh import sh_to_rgb
+from endogsim.gaussians.types import RasterConfig, RenderOutput
 
 Backend = Literal["auto", "torch", "warp", "gsplat"]
 
-__all__ = ["RasterConfig", "RenderOutput", "rasterize", "render_gaussians", "camera_center", "resolve_backend"]
-
-
-@dataclass
-class RenderOutput:
-    """What one render returns.
-
-    Attributes:
-        rgb: [H, W, 3] colour, background composited behind.
-        depth: [H, W] expected camera z (metres), normalised by alpha; 0 where alpha is 0.
-        alpha: [H, W] accumulated opacity in [0, 1].
-        features: [H, W, F] composited extra channels (not normalised, no background), or None.
-        meta: backend details: ``backend`` (str), ``means2d`` [N, 2] (pixels), ``radii`` [N, 2] int32
-            (0 = culled), ``depths`` [N] camera z (metres), ``n_pairs`` (int: candidate (pixel, Gaussian)
-            pairs of the torch backend, (tile, Gaussian) entries of warp and gsplat).
-    """
-
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    alpha: torch.Tensor
-    features: torch.Tensor | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
-
-
-def camera_center(camera: Camera) -> torch.Tensor:
-    """[3] camera centre in world coordinates (metres)."""
-    R, t = camera.viewmat[:3, :3], camera.viewmat[:3, 3]
-    return -R.T @ t
+__all__ = ["RasterConfig", "RenderOutput", "rasterize", "render_gaussians", "resolve_backend"]
 
 
 def gsplat_available() -> bool:
@@ -157,7 +130,7 @@ def rasterize(
     viewmat = camera.viewmat.to(device=device, dtype=dtype)
     K = camera.K.to(device=device, dtype=dtype)
     if colors.ndim == 3:
-        rgb = sh_to_rgb(colors, means - camera_center(camera).to(device=device, dtype=dtype))
+        rgb = sh_to_rgb(colors, means - camera.center().to(device=device, dtype=dtype))
     else:
         rgb = colors
     bg = torch.zeros(3, device=device, dtype=dtype) if background is None else background.to(device=device, dtype=dtype)

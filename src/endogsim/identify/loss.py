@@ -26,6 +26,7 @@ import torch
 
 from endogsim.identify.forward import Rendered
 from endogsim.io.atomic import save_npz_atomic
+from endogsim.io.images import resize_frames
 
 __all__ = ["Observations", "make_observations", "observed_flow", "identification_loss"]
 
@@ -107,16 +108,6 @@ def observed_flow(frames: np.ndarray, estimator: str = "dis_fine", weights: str 
     return flow
 
 
-def _resize(a: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
-    import cv2
-
-    W, H = size
-    if a.shape[1] == H and a.shape[2] == W:
-        return a
-    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
-    return np.stack([cv2.resize(x, (W, H), interpolation=interp) for x in a])
-
-
 def make_observations(frames: np.ndarray, flow: np.ndarray, object_masks: np.ndarray | None,
                       deformable_ids: list[int], size: tuple[int, int]) -> Observations:
     """Observations at the rendering size ``size`` = (W, H).
@@ -127,11 +118,11 @@ def make_observations(frames: np.ndarray, flow: np.ndarray, object_masks: np.nda
     """
     W, H = size
     scale = W / frames.shape[2]
-    fr = _resize(frames.astype(np.float32), size)
-    fl = _resize(flow.astype(np.float32), size) * scale
+    fr = resize_frames(frames.astype(np.float32), size)
+    fl = resize_frames(flow.astype(np.float32), size) * scale
     if object_masks is not None:
         tissue = np.isin(object_masks, deformable_ids).astype(np.uint8)
-        tissue = _resize(tissue, size, nearest=True).astype(bool)
+        tissue = resize_frames(tissue, size, nearest=True).astype(bool)
     else:
         tissue = np.ones(fr.shape[:3], bool)
     return Observations(torch.from_numpy(fr), torch.from_numpy(fl), torch.from_numpy(tissue),

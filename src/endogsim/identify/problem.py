@@ -26,6 +26,7 @@ import torch
 from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
+from endogsim.io.images import read_grey, read_rgb
 from endogsim.io.scene import ObjectLabel
 from endogsim.physics import (
     Anchor,
@@ -93,36 +94,23 @@ class IdentifyProblem:
         return bool(deformable) and all(o.E is not None and o.nu is not None for o in deformable)
 
 
-def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(f"{path}: cannot read image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-
-
 def read_observations(folder: Path, truth: SceneTruth, frames: int) -> tuple[np.ndarray, np.ndarray | None,
                                                                            np.ndarray | None, np.ndarray | None]:
     """Observed frames [T, H, W, 3], object masks [T, H, W] (or None), ground-truth flow [T-1, H, W, 2] and
     its valid mask [T-1, H, W] (or None) of a scene folder."""
-    import cv2
-
     pat = truth.files.get("images", "images/frame-%06d.color.png")
-    imgs = [_read_rgb(folder / (pat % t)) for t in range(frames)]
+    imgs = [read_rgb(folder / (pat % t)) for t in range(frames)]
     out_frames = np.stack(imgs)
     masks = None
     mpat = truth.files.get("object_masks")
     if mpat and (folder / (mpat % 0)).is_file():
-        masks = np.stack([cv2.imread(str(folder / (mpat % t)), cv2.IMREAD_UNCHANGED).astype(np.int32)
-                          for t in range(frames)])
+        masks = np.stack([read_grey(folder / (mpat % t)).astype(np.int32) for t in range(frames)])
     flow = valid = None
     fpat, vpat = truth.files.get("flow"), truth.files.get("flow_valid")
     if fpat and (folder / (fpat % 0)).is_file():
         flow = np.stack([np.load(folder / (fpat % t)).astype(np.float32) for t in range(frames - 1)])
         if vpat and (folder / (vpat % 0)).is_file():
-            valid = np.stack([cv2.imread(str(folder / (vpat % t)), cv2.IMREAD_UNCHANGED) > 127
-                              for t in range(frames - 1)])
+            valid = np.stack([read_grey(folder / (vpat % t)) > 127 for t in range(frames - 1)])
         else:
             valid = np.ones(flow.shape[:3], bool)
     return out_frames, masks, flow, valid

@@ -7,8 +7,8 @@ from importlib import import_module
 
 _EXPORTS = {
     "Scene": "scene", "ObjectLabel": "scene",
-    "load_scene": "loaders", "load_endonerf": "loaders", "load_cholecseg8k": "loaders", "load_video": "loaders",
-    "detect_format": "loaders",
+    "load_scene": "formats", "load_endonerf": "loaders", "load_cholecseg8k": "loaders", "load_video": "loaders",
+    "detect_format": "formats", "register_format": "formats", "DatasetFormat": "formats", "FORMATS": "formats",
     "write_video": "video_writer", "write_frames_png": "video_writer",
     "write_json_atomic": "atomic", "save_torch_atomic": "atomic", "save_npz_atomic": "atomic",
     "write_text_atomic": "atomic", "atomic_path": "atomic", "atomic_folder": "atomic",

@@ -1,7 +1,8 @@
 """Loaders that turn an EndoNeRF folder, a CholecSeg8K clip or a video file into one :class:`Scene`.
 
-Entry point: :func:`load_scene` detects the format and dispatches. All bad input raises
-:class:`~endogsim.errors.DataError` naming the file and the problem.
+One function per dataset layout; :mod:`endogsim.io.formats` registers them, detects a path's format and
+dispatches (:func:`endogsim.io.load_scene`). All bad input raises :class:`~endogsim.errors.DataError`
+naming the file and the problem.
 
 Conventions
 -----------
@@ -15,8 +16,9 @@ Conventions
   metres, so the mm reading is our assumption (it matches the bounds and a ~5-10 cm working distance). We convert to metres with ``depth_scale`` metres per stored unit, default
   ``1e-3`` (millimetres). 0 means invalid and stays 0. Depth may also be float ``.npy`` or ``.tiff``
   files (also multiplied by ``depth_scale``); NaN, inf or negative values are refused.
-- Folders written by ``endogsim synth`` carry a ``scene.json``: its ``depth_scale`` (stored units per
-  metre) and ``scenario.frame_dt`` (seconds) replace the EndoNeRF defaults; explicit arguments still win.
+- EndoGSim scene folders (``endogsim synth`` output, a run's ``scene/``) are EndoNeRF folders with a
+  ``scene.json``: its ``depth_scale`` (stored units per metre), ``scenario.frame_dt`` (seconds), camera
+  and objects (with ``object_masks/``) replace the EndoNeRF defaults; explicit arguments still win.
 - EndoNeRF times: the LLFF file holds no frame rate; the sequences are ~30 fps stereo videos, so the
   default is ``ENDONERF_FPS = 30``.
 - CholecSeg8K: no intrinsics are published. We assume a pinhole with a horizontal field of view of
@@ -30,6 +32,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -37,7 +40,8 @@ import numpy as np
 
 from endogsim.errors import DataError
 from endogsim.io import labels as L
-from endogsim.io.scene import Scene
+from endogsim.io.images import read_grey, read_rgb, resize
+from endogsim.io.scene import ObjectLabel, Scene
 
 ENDONERF_FPS = 30.0
 CHOLEC_FPS = 25.0
@@ -57,54 +61,6 @@ def _natural_key(p: Path) -> list:
 
 def _list_images(folder: Path, exts=IMAGE_EXTS) -> list[Path]:
     return sorted((p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file()), key=_natural_key)
-
-
-def _read_raw(path: Path) -> np.ndarray:
-    """Read an image as stored (8/16 bit, any channels); DataError if unreadable or truncated."""
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read file ({exc.strerror})") from None
-    if data.size == 0:
-        raise DataError(f"{path}: empty file")
-    # Silence OpenCV's own warning on truncated files: the DataError below says it better.
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-    try:
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
-    if img is None:
-        raise DataError(f"{path}: not a readable image (corrupt or unsupported)")
-    if path.suffix.lower() in (".jpg", ".jpeg") and not data[-2:].tobytes() == b"\xff\xd9":
-        # OpenCV decodes a truncated JPEG to a grey-filled image with only a warning.
-        raise DataError(f"{path}: truncated JPEG (no end-of-image marker)")
-    return img
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    """[H, W, 3] float32 RGB in [0, 1]."""
-    img = _read_raw(path)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    elif img.shape[2] == 4:
-        img = img[..., :3]
-    img = img[..., ::-1]  # OpenCV is BGR
-    scale = 65535.0 if img.dtype == np.uint16 else 255.0
-    return np.ascontiguousarray(img, dtype=np.float32) / np.float32(scale)
-
-
-def _read_grey(path: Path) -> np.ndarray:
-    """[H, W] single channel as stored (first channel of a colour file)."""
-    img = _read_raw(path)
-    return img if img.ndim == 2 else img[..., 0]
-
-
-def _resize(img: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
-    w, h = size
-    if img.shape[1] == w and img.shape[0] == h:
-        return img
-    return cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
 
 
 def _target_size(w: int, h: int, downscale: float) -> tuple[int, int]:
@@ -131,14 +87,14 @@ def _load_frames(paths: list[Path], downscale: float, what: str = "frame") -> tu
     """Stack RGB frames, refusing different sizes. Returns (frames [T,h,w,3], W0, H0)."""
     out, size0, first = [], None, None
     for p in paths:
-        img = _read_rgb(p)
+        img = read_rgb(p)
         if size0 is None:
             size0, first = img.shape[:2], p
             target = _target_size(img.shape[1], img.shape[0], downscale)
         elif img.shape[:2] != size0:
             raise DataError(f"{p}: {what} is {img.shape[1]}x{img.shape[0]}, but {first.name} is "
                             f"{size0[1]}x{size0[0]} (all frames must have the same size)")
-        out.append(_resize(img, target, nearest=False))
+        out.append(resize(img, target, nearest=False))
     return np.stack(out), size0[1], size0[0]
 
 
@@ -168,9 +124,9 @@ def _load_endonerf_style_masks(mask_dir: Path, n_all: int, n: int, w0: int, h0: 
     paths = paths[:n]
     out = []
     for p in paths:
-        m = _read_grey(p)
+        m = read_grey(p)
         _check_mask_size(m, p, w0, h0)
-        out.append(_resize((m > 127).astype(np.uint8), size, nearest=True))
+        out.append(resize((m > 127).astype(np.uint8), size, nearest=True))
     return np.stack(out).astype(np.int32)
 
 
@@ -218,35 +174,15 @@ def _load_depth(depth_dir: Path, n_all: int, n: int, w0: int, h0: int, size: tup
                 raise DataError(f"{p}: depth must be a 2-D numeric array, got {d.dtype} {d.shape}")
             d = d.astype(np.float64)
         else:
-            d = _read_grey(p).astype(np.float64)
+            d = read_grey(p).astype(np.float64)
         if not np.isfinite(d).all():
             raise DataError(f"{p}: depth contains NaN or inf")
         if (d < 0).any():
             raise DataError(f"{p}: depth contains negative values (min {d.min():.4g})")
         if d.shape != (h0, w0):
             raise DataError(f"{p}: depth is {d.shape[1]}x{d.shape[0]}, frames are {w0}x{h0}")
-        out.append(_resize((d * depth_scale).astype(np.float32), size, nearest=True))
+        out.append(resize((d * depth_scale).astype(np.float32), size, nearest=True))
     return np.stack(out)
-
-
-def _synth_meta(folder: Path) -> tuple[float | None, float | None]:
-    """(metres per stored depth unit, frame rate in Hz) from an ``endogsim synth`` folder's ``scene.json``,
-    None for what it does not say (or when there is no ``scene.json``)."""
-    path = folder / "scene.json"
-    if not path.is_file():
-        return None, None
-    try:
-        meta = json.loads(path.read_text())
-        units_per_m = meta.get("depth_scale")
-        frame_dt = (meta.get("scenario") or {}).get("frame_dt")
-        depth_scale = None if units_per_m is None else 1.0 / float(units_per_m)
-        fps = None if frame_dt is None else 1.0 / float(frame_dt)
-    except (ValueError, TypeError, AttributeError, ZeroDivisionError) as exc:
-        raise DataError(f"{path}: malformed scene.json ({exc})") from None
-    for name, v in (("depth_scale", depth_scale), ("scenario.frame_dt", fps)):
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise DataError(f"{path}: {name} must be a positive number")
-    return depth_scale, fps
 
 
 def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int | None = None,
@@ -258,10 +194,8 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         folder: the dataset folder.
         downscale: factor >= 1 by which images, depth, masks and K are reduced.
         max_frames: keep only the first frames.
-        fps: frame rate for ``times`` (default: 1 / ``scenario.frame_dt`` of a ``scene.json`` in the folder,
-            else ``ENDONERF_FPS`` = 30; the LLFF file holds none).
-        depth_scale: metres per stored depth unit (default: 1 / ``depth_scale`` of a ``scene.json`` in the
-            folder, else 1e-3: EndoNeRF depth is ~millimetres).
+        fps: frame rate for ``times`` (default ``ENDONERF_FPS`` = 30; the LLFF file holds none).
+        depth_scale: metres per stored depth unit (default 1e-3: EndoNeRF depth is ~millimetres).
         mask_dir: tool-mask folder to use instead of ``folder/masks``.
     Returns:
         a Scene with K from the LLFF focal (cx, cy at the image centre; without ``poses_bounds.npy``
@@ -293,9 +227,8 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         K0 = default_K(w0, h0, VIDEO_HFOV_DEG)
     K = _scale_K(K0, w0, h0, w, h)
 
-    meta_depth_scale, meta_fps = _synth_meta(folder)
     if depth_scale is None:
-        depth_scale = meta_depth_scale or DEFAULT_DEPTH_SCALE
+        depth_scale = DEFAULT_DEPTH_SCALE
     depth = None
     if (folder / "depth").is_dir():
         depth = _load_depth(folder / "depth", n_all, n, w0, h0, (w, h), depth_scale)
@@ -303,7 +236,7 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
     masks = None
     if mask_dir is not None or mdir.is_dir():
         masks = _load_endonerf_style_masks(mdir, n_all, n, w0, h0, (w, h))
-    rate = fps or meta_fps or ENDONERF_FPS
+    rate = fps or ENDONERF_FPS
     return Scene(
         frames=frames, times=np.arange(n, dtype=np.float64) / rate, K=K, depth=depth,
         object_masks=masks,
@@ -316,7 +249,8 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
 _CHOLEC_RE = re.compile(r"^frame_(\d+)_endo\.png$")
 
 
-def _cholec_dir(folder: Path) -> Path | None:
+def cholecseg8k_frame_dir(folder: Path) -> Path | None:
+    """The folder holding a CholecSeg8K clip's ``frame_N_endo.png`` files (``folder`` or ``folder/frames``)."""
     for d in (folder, folder / "frames"):
         if d.is_dir() and any(_CHOLEC_RE.match(p.name) for p in d.iterdir()):
             return d
@@ -333,7 +267,7 @@ def load_cholecseg8k(folder: str | Path, *, downscale: float = 1.0, max_frames: 
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"{folder}: folder does not exist")
-    d = _cholec_dir(folder)
+    d = cholecseg8k_frame_dir(folder)
     if d is None:
         raise DataError(f"{folder}: no frame_N_endo.png files (empty CholecSeg8K sequence)")
     paths = sorted((p for p in d.iterdir() if _CHOLEC_RE.match(p.name)), key=lambda p: int(_CHOLEC_RE.match(p.name)[1]))
@@ -346,14 +280,14 @@ def load_cholecseg8k(folder: str | Path, *, downscale: float = 1.0, max_frames: 
         mp = p.with_name(p.stem + "_watershed_mask.png")
         if not mp.is_file():
             raise DataError(f"{mp}: watershed mask missing for frame {p.name}")
-        m = _read_grey(mp)
+        m = read_grey(mp)
         _check_mask_size(m, mp, w0, h0)
         ids = m.astype(np.int32)
         ids[m == L.CHOLECSEG8K_UNLABELLED_VALUE] = L.UNLABELLED
         unknown = set(np.unique(ids).tolist()) - set(L.CHOLECSEG8K_LABELS) - {L.UNLABELLED}
         if unknown:
             raise DataError(f"{mp}: unknown CholecSeg8K class ids {sorted(unknown)}")
-        masks.append(_resize(ids, (w, h), nearest=True))
+        masks.append(resize(ids, (w, h), nearest=True))
     K = _scale_K(default_K(w0, h0, hfov_deg), w0, h0, w, h)
     rate = fps or CHOLEC_FPS
     return Scene(
@@ -392,7 +326,7 @@ def load_video(path: str | Path, *, mask_dir: str | Path | None = None, downscal
     if not raw:
         raise DataError(f"{path}: empty sequence (no decodable frames)")
     size = _target_size(w0, h0, downscale)
-    frames = np.stack([_resize(f, size, nearest=False).astype(np.float32) / 255.0 for f in raw])
+    frames = np.stack([resize(f, size, nearest=False).astype(np.float32) / 255.0 for f in raw])
     n, h, w = frames.shape[:3]
     masks = None
     if mask_dir is not None:
@@ -407,48 +341,75 @@ def load_video(path: str | Path, *, mask_dir: str | Path | None = None, downscal
     )
 
 
-# ----------------------------------------------------------------------------------------------- dispatch
-def detect_format(path: str | Path) -> str:
-    """'endonerf', 'cholecseg8k' or 'video'; DataError if missing or unknown."""
-    path = Path(path)
-    if not path.exists():
-        raise DataError(f"{path}: no such file or folder")
-    if path.is_file():
-        if path.suffix.lower() in VIDEO_EXTS:
-            return "video"
-        raise DataError(f"{path}: unknown format (expected a folder or a video file {', '.join(VIDEO_EXTS)})")
-    if (path / "images").is_dir() or (path / "poses_bounds.npy").is_file():
-        return "endonerf"
-    if _cholec_dir(path) is not None:
-        return "cholecseg8k"
-    raise DataError(f"{path}: unknown format (not an EndoNeRF folder with images/, a CholecSeg8K clip "
-                    "with frame_N_endo.png, or a video file)")
+# ----------------------------------------------------------------------------------------------- scene folder
+def _read_scene_json(path: Path) -> dict:
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable scene.json ({exc})") from None
+    if not isinstance(meta, dict):
+        raise DataError(f"{path}: scene.json must hold a JSON object")
+    return meta
 
 
-def load_scene(path: str | Path, *, downscale: float = 1.0, max_frames: int | None = None,
-               mask_dir: str | Path | None = None, fps: float | None = None, **kwargs) -> Scene:
-    """Load any supported dataset into a :class:`Scene` (format detected from the path).
+def _positive(meta: dict, path: Path, *keys: str) -> float | None:
+    """meta[keys[0]][keys[1]]... as a positive float, None when absent; DataError naming the key otherwise."""
+    v = meta
+    for k in keys:
+        v = v.get(k) if isinstance(v, dict) else None
+    if v is None:
+        return None
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        raise DataError(f"{path}: {'.'.join(keys)} must be a positive number")
+    return v
 
-    Args:
-        path: EndoNeRF folder, CholecSeg8K clip folder, or video file.
-        downscale: factor >= 1 applied to frames, depth, masks and K.
-        max_frames: keep only the first ``max_frames`` frames.
-        mask_dir: tool masks (255 = tool) for EndoNeRF folders or videos.
-        fps: override the frame rate used for ``times`` (seconds).
-        kwargs: format-specific options (``depth_scale`` for EndoNeRF, ``hfov_deg`` otherwise).
+
+def load_scene_folder(folder: str | Path, *, downscale: float = 1.0, max_frames: int | None = None,
+                      fps: float | None = None, depth_scale: float | None = None,
+                      mask_dir: str | Path | None = None) -> Scene:
+    """Load an EndoGSim scene folder: the EndoNeRF layout plus ``scene.json`` (``endogsim synth`` output, or
+    the scene folder of a run).
+
+    ``scene.json`` supplies what EndoNeRF lacks, where it says it: ``depth_scale`` (stored units per metre),
+    ``scenario.frame_dt`` (seconds), ``camera`` (K, width, height) and ``objects`` (id, name, class, rigid)
+    with their ``object_masks/`` (object id per pixel, 0 = empty background). Explicit arguments win.
     """
-    if max_frames is not None and max_frames < 1:
-        raise DataError(f"max_frames must be >= 1, got {max_frames}")
-    fmt = detect_format(path)
-    allowed = {"endonerf": {"depth_scale"}, "cholecseg8k": {"hfov_deg"}, "video": {"hfov_deg"}}[fmt]
-    extra = sorted(set(kwargs) - allowed)
-    if extra:
-        raise DataError(f"{path}: option(s) {extra} not supported for {fmt} data (allowed: {sorted(allowed)})")
-    common = dict(downscale=downscale, max_frames=max_frames, fps=fps, **kwargs)
-    if fmt == "endonerf":
-        return load_endonerf(path, mask_dir=mask_dir, **common)
-    if fmt == "cholecseg8k":
-        if mask_dir is not None:
-            raise DataError(f"{path}: CholecSeg8K clips carry their own masks; mask_dir is not used")
-        return load_cholecseg8k(path, **common)
-    return load_video(path, mask_dir=mask_dir, **common)
+    folder = Path(folder)
+    path = folder / "scene.json"
+    meta = _read_scene_json(path)
+    units_per_m = _positive(meta, path, "depth_scale")
+    frame_dt = _positive(meta, path, "scenario", "frame_dt")
+    if depth_scale is None and units_per_m is not None:
+        depth_scale = 1.0 / units_per_m
+    if fps is None and frame_dt is not None:
+        fps = 1.0 / frame_dt
+    scene = load_endonerf(folder, downscale=downscale, max_frames=max_frames, fps=fps, depth_scale=depth_scale,
+                          mask_dir=mask_dir)
+    cam = meta.get("camera")
+    if isinstance(cam, dict) and "K" in cam and not (folder / "poses_bounds.npy").is_file():
+        try:
+            K0, w0, h0 = np.asarray(cam["K"], np.float64).reshape(3, 3), int(cam["width"]), int(cam["height"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{path}: malformed camera ({exc})") from None
+        scene = replace(scene, K=_scale_K(K0, w0, h0, scene.width, scene.height))
+    objects = meta.get("objects")
+    mdir = folder / "object_masks"
+    if objects and mdir.is_dir():
+        try:
+            labels = {int(o["id"]): ObjectLabel(int(o["id"]), str(o["name"]), bool(o.get("rigid", False)),
+                                                str(o.get("class", "unknown_tissue"))) for o in objects}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{path}: malformed objects ({exc})") from None
+        files = _list_images(mdir)[: scene.num_frames]
+        if len(files) != scene.num_frames:
+            raise DataError(f"{mdir}: {len(files)} object masks for {scene.num_frames} frames")
+        ids = np.stack([resize(read_grey(f).astype(np.int32), (scene.width, scene.height), nearest=True)
+                        for f in files])
+        # id 0 in a scene folder's masks is empty space behind everything
+        ids = np.where(np.isin(ids, list(labels)), ids, L.UNLABELLED).astype(np.int32)
+        scene = replace(scene, object_masks=ids, labels=labels)
+    return scene

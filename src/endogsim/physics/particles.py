@@ -83,12 +83,6 @@ class Particles:
                          torch.full((P,), int(object_id), dtype=torch.int64))
 
 
-def camera_center(camera: Camera) -> torch.Tensor:
-    """[3] camera centre in world coordinates (metres): -R^T t of the world-to-camera matrix."""
-    vm = camera.viewmat.to(torch.float64)
-    return -(vm[:3, :3].T @ vm[:3, 3])
-
-
 def extrude_along_rays(points: torch.Tensor, center: torch.Tensor, thickness: float, spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Give a one-sided surface a volume: copies of ``points`` pushed away from the camera along the rays.
 
@@ -154,7 +148,7 @@ def particles_from_gaussians(
         if pts.shape[0] == 0:
             continue
         if thickness > 0:
-            pts, _ = extrude_along_rays(pts, camera_center(camera), thickness, spacing)
+            pts, _ = extrude_along_rays(pts, camera.center().double(), thickness, spacing)
         x = voxel_downsample(pts, spacing)
         parts.append(Particles(x.float(), torch.full((x.shape[0],), spacing**3, dtype=torch.float32),
                                torch.full((x.shape[0],), int(oid), dtype=torch.int64)))

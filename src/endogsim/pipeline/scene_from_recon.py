@@ -98,15 +98,6 @@ def _relative_transforms(M: np.ndarray) -> np.ndarray:
     return M @ np.linalg.inv(M[0])[None]
 
 
-def _resize_frames(frames: np.ndarray, width: int, height: int, nearest: bool = False) -> np.ndarray:
-    import cv2
-
-    if frames.shape[1:3] == (height, width):
-        return frames
-    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
-    return np.stack([cv2.resize(f, (width, height), interpolation=interp) for f in frames])
-
-
 def scene_from_reconstruction(
     recon_run: str | Path,
     data: str | Path,
@@ -136,6 +127,7 @@ def scene_from_reconstruction(
 
     from endogsim.gaussians.ply import write_ply
     from endogsim.io import load_scene
+    from endogsim.io.images import resize_frames
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
     from endogsim.recon.model import load_reconstruction
     from endogsim.synth.spec import load_scene_truth
@@ -158,10 +150,10 @@ def scene_from_reconstruction(
     scene = load_scene(data)
     if scene.frames.shape[0] < T:
         raise DataError(f"{data}: {scene.frames.shape[0]} frames, but the reconstruction {recon_run} has {T}")
-    frames = _resize_frames(scene.frames[:T], cam.width, cam.height)
+    frames = resize_frames(scene.frames[:T], (cam.width, cam.height))
     masks = None
     if scene.object_masks is not None:
-        masks = _resize_frames(scene.object_masks[:T].astype(np.int32), cam.width, cam.height, nearest=True)
+        masks = resize_frames(scene.object_masks[:T].astype(np.int32), (cam.width, cam.height), nearest=True)
 
     gt = load_scene_truth(truth) if truth is not None else None
     if gt is not None and (gt.camera.width, gt.camera.height) != (cam.width, cam.height):

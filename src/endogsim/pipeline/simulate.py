@@ -238,8 +238,6 @@ def surface_point(problem, loc: _Located) -> np.ndarray:
     """World point [3] (metres) of ``loc`` on the camera-facing side of the deformable particles."""
     if loc.point is not None:
         return np.asarray(loc.point, float)
-    from endogsim.physics.particles import camera_center
-
     x = problem.particles.x.double().numpy()
     oid = _object_id(problem, loc.object, deformable=True)
     if oid is not None:
@@ -252,7 +250,7 @@ def surface_point(problem, loc: _Located) -> np.ndarray:
     if not near.any():
         raise DataError(f"at = [{u}, {v}] lies off the tissue of scene {problem.truth.name!r} (no particle within "
                         f"{1.5 * spacing * 1e3:.1f} mm of the image-plane point)")
-    cam = camera_center(problem.camera).numpy()
+    cam = problem.camera.center().double().numpy()
     cand = x[near]
     return cand[np.argmin(np.linalg.norm(cand - cam, axis=1))]
 

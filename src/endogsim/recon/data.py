@@ -11,9 +11,8 @@ pixel classes the losses use:
 The endoscope's field of view (:func:`field_of_view`): pixels labelled background in every training frame
 lie outside the lens's image circle; renders are black there, as the camera's pictures are.
 
-Procedural scenes written by ``endogsim synth`` carry ``scene.json``: its ``depth_scale`` (stored units
-per metre) and its ``object_masks/`` (the scene's own ids and names) are used when present, so
-reconstructed object ids match the generator's.
+Scene folders written by ``endogsim synth`` are read with their own object ids and names (the
+``endogsim_scene`` format of :mod:`endogsim.io.formats`), so reconstructed object ids match the generator's.
 
 Train/test split (EndoNeRF protocol): frame i is a test frame when (i - 1) % 8 == 0; the rest train.
 
@@ -26,16 +25,15 @@ field and the interpolated poses of held-out frames follow the scene's time, not
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from endogsim.errors import DataError
-from endogsim.io.scene import ObjectLabel, Scene
+from endogsim.io.scene import Scene
 
-__all__ = ["PreparedScene", "prepare_scene", "split_frames", "load_recon_scene", "repeated_frames", "video_times",
+__all__ = ["PreparedScene", "prepare_scene", "split_frames", "repeated_frames", "video_times",
            "field_of_view"]
 
 #: mean absolute difference (RGB in [0, 1]) under which two consecutive frames are the same picture
@@ -129,46 +127,6 @@ class PreparedScene:
         return sorted(i for i, lab in self.scene.labels.items() if not lab.is_tool and lab.klass != "background")
 
 
-def load_recon_scene(path: str | Path, downscale: float, max_frames: int | None = None) -> Scene:
-    """:func:`load_scene` plus the extras of procedural scenes (``scene.json``: depth scale, object ids)."""
-    from endogsim.io import load_scene
-    from endogsim.io.loaders import _resize  # the loaders' nearest-neighbour convention for id masks
-
-    path = Path(path)
-    meta = None
-    if path.is_dir() and (path / "scene.json").is_file():
-        try:
-            meta = json.loads((path / "scene.json").read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(f"{path / 'scene.json'}: not valid JSON ({exc})") from None
-    kwargs = {}
-    if meta and "depth_scale" in meta and (path / "depth").is_dir():
-        kwargs["depth_scale"] = 1.0 / float(meta["depth_scale"])  # file: stored units per metre
-    scene = load_scene(path, downscale=downscale, max_frames=max_frames, **kwargs)
-    if meta and (path / "object_masks").is_dir() and meta.get("objects"):
-        import cv2
-
-        files = sorted((path / "object_masks").glob("*.png"))[: scene.num_frames]
-        if len(files) != scene.num_frames:
-            raise DataError(f"{path / 'object_masks'}: {len(files)} masks for {scene.num_frames} frames")
-        masks = []
-        for f in files:
-            m = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
-            if m is None:
-                raise DataError(f"{f}: cannot read object mask")
-            masks.append(_resize(m.astype(np.int32), (scene.width, scene.height), nearest=True))
-        ids = np.stack(masks).astype(np.int32)
-        labels = {}
-        for o in meta["objects"]:
-            klass = str(o.get("class", "unknown_tissue"))
-            is_tool = bool(o.get("is_tool", klass == "instrument"))
-            labels[int(o["id"])] = ObjectLabel(int(o["id"]), str(o["name"]), is_tool, klass)
-        # id 0 in procedural masks is empty space behind everything
-        ids = np.where(np.isin(ids, list(labels)), ids, -1).astype(np.int32)
-        scene = replace(scene, object_masks=ids, labels=labels)
-    return scene
-
-
 def field_of_view(object_masks: np.ndarray, background_ids: list[int], frames_used: list[int]) -> np.ndarray | None:
     """[H, W] bool: pixels inside the endoscope's field of view, or None when it fills the image.
 
@@ -193,10 +151,11 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
         path: dataset folder or video file.
         config: a :class:`~endogsim.recon.config.ReconConfig`.
     """
+    from endogsim.io.formats import load_scene
     from endogsim.priors.depth import estimate_depth
     from endogsim.priors.segmentation import segment_scene
 
-    scene = load_recon_scene(path, 1.0 / config.resolution_scale, config.max_frames)
+    scene = load_scene(path, downscale=1.0 / config.resolution_scale, max_frames=config.max_frames)
     dev = "cuda" if config.device == "cuda" else "cpu"
     dp = estimate_depth(scene, config.depth_method, config.depth_weights, dev, config.working_distance)
     seg = segment_scene(scene, config.seg_method, config.seg_checkpoint, config.seg_config, dev)

@@ -5,16 +5,13 @@ by the pixel), the segmentation gives object ids, each tissue object gets ground
 value of its class, perturbed deterministically from the seed), and a synthetic rigid tool presses or pulls
 the largest tissue object. Simulation and writing are shared with the procedural scenes.
 
-Readers (frame 0 only, so no full-sequence loader is needed):
-  * EndoNeRF layout: ``images/`` (sorted), optional ``masks/`` (255 = tool), optional ``depth/``,
-    ``poses_bounds.npy`` (focal in column 14; principal point at the image centre).
-  * CholecSeg8K layout: ``frames/frame_N_endo.png`` + ``frame_N_endo_watershed_mask.png`` (class ids);
-    no intrinsics (a 70 degree horizontal field of view is assumed).
+Frame 0 is read with :func:`endogsim.io.load_scene` (any registered dataset format, with the loaders'
+intrinsics: EndoNeRF's focal, else their default field of view), its segmentation giving the classes:
+EndoNeRF-style tool masks (tissue 1, tool 31) or CholecSeg8K class ids.
 
 Depth: when the folder has ``depth/`` its values are used as *relative* depth, rescaled so the median is
-the nominal distance. Without depth (both shared excerpts) the documented fallback is a smooth bowl seen
-from inside: z = D (1 - 0.25 r^2) with D = ``nominal_depth`` (0.07 m) and r the distance from the image
-centre normalised to 1 at the corners (the centre of the cavity is farthest away).
+the nominal distance. Without depth (both shared excerpts) it is the reconstruction's offline fallback, a
+smooth bowl seen from inside at ``nominal_depth`` (0.07 m; :func:`endogsim.priors.depth.fallback_depth`).
 """
 
 from __future__ import annotations
@@ -27,8 +24,10 @@ import torch
 from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
-from endogsim.io.labels import CHOLECSEG8K_LABELS, CHOLECSEG8K_NON_OBJECTS, CHOLECSEG8K_UNLABELLED_VALUE
+from endogsim.io.labels import CHOLECSEG8K_LABELS, CHOLECSEG8K_NON_OBJECTS, CHOLECSEG8K_UNLABELLED_VALUE, UNLABELLED
+from endogsim.io.images import resize
 from endogsim.materials.prior import prior_entry
+from endogsim.priors.depth import fallback_depth
 from endogsim.synth import procedural as proc
 from endogsim.physics import MPMConfig, max_stable_E
 from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface, tool_offsets, tool_truth
@@ -49,64 +48,29 @@ def _prior(klass: str, is_tool: bool = False) -> tuple[float, float, float, str]
     return float(e["in_vivo"]["E"]), float(e["nu"]), float(e["density"]), f"prior table ({key})"
 
 
-def _imread_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(f"{path}: cannot read image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-
-
 def read_first_frame(data_dir: Path) -> dict:
-    """Frame 0 of a real scene: rgb [H,W,3] float in [0,1], classes [H,W] int (class id, or 1 = tissue /
-    31 = tool when only a tool mask exists), depth [H,W] or None (relative units), focal (px) or None."""
-    import cv2
+    """Frame 0 of a real scene, read through :func:`endogsim.io.load_scene` (any registered format):
+    rgb [H,W,3] float in [0,1], classes [H,W] int (class id; 1 = tissue / 31 = tool for EndoNeRF-style tool
+    masks; 255 unlabelled), depth [H,W] or None (relative units), K [3,3] (pixels), and the labels
+    {class id: (name, prior class, is_tool)}."""
+    from endogsim.io.formats import detect_format, load_scene
 
     d = Path(data_dir)
-    if not d.is_dir():
+    if not d.exists():
         raise DataError(f"--from {d}: no such folder")
-    if (d / "images").is_dir():
-        imgs = sorted(p for p in (d / "images").iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-        if not imgs:
-            raise DataError(f"{d / 'images'}: no frames")
-        rgb = _imread_rgb(imgs[0])
-        H, W = rgb.shape[:2]
+    scene = load_scene(d, max_frames=1)
+    H, W = scene.height, scene.width
+    if scene.object_masks is None:
         classes = np.ones((H, W), np.int64)
-        masks = sorted((d / "masks").glob("*.png")) if (d / "masks").is_dir() else []
-        if masks:
-            m = cv2.imread(str(masks[0]), cv2.IMREAD_GRAYSCALE)
-            classes[m > 127] = 31
-        depth = None
-        depths = sorted((d / "depth").glob("*.png")) if (d / "depth").is_dir() else []
-        if depths:
-            depth = cv2.imread(str(depths[0]), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        focal = None
-        if (d / "poses_bounds.npy").is_file():
-            pb = np.load(d / "poses_bounds.npy")
-            if pb.ndim != 2 or pb.shape[1] != 17:
-                raise DataError(f"{d / 'poses_bounds.npy'}: expected shape (N, 17), got {pb.shape}")
-            focal = float(pb[0, 14]) * W / float(pb[0, 9])  # focal is given for the stored width
-        return {"rgb": rgb, "classes": classes, "depth": depth, "focal": focal, "layout": "endonerf",
-                "labels": {1: ("tissue", "unknown_tissue", False), 31: ("tool", "instrument", True)}}
-    if (d / "frames").is_dir():
-        frames = sorted((d / "frames").glob("frame_*_endo.png"), key=lambda p: int(p.stem.split("_")[1]))
-        if not frames:
-            raise DataError(f"{d / 'frames'}: no frame_N_endo.png files (CholecSeg8K layout)")
-        rgb = _imread_rgb(frames[0])
-        mpath = frames[0].with_name(frames[0].stem + "_watershed_mask.png")
-        if not mpath.is_file():
-            raise DataError(f"{mpath}: missing CholecSeg8K mask for {frames[0].name}")
-        classes = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE).astype(np.int64)
-        return {"rgb": rgb, "classes": classes, "depth": None, "focal": None, "layout": "cholecseg8k",
-                "labels": CHOLECSEG_CLASSES}
-    raise DataError(f"--from {d}: neither an EndoNeRF folder (images/) nor a CholecSeg8K clip (frames/)")
-
-
-def _bowl_depth(H: int, W: int, nominal: float) -> np.ndarray:
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    r2 = ((xs + 0.5 - W / 2) ** 2 + (ys + 0.5 - H / 2) ** 2) / ((W / 2) ** 2 + (H / 2) ** 2)
-    return nominal * (1 - 0.25 * r2)
+    elif set(scene.labels) <= {0, 1}:  # EndoNeRF-style tool masks: 0 tissue, 1 tool
+        classes = np.where(scene.object_masks[0] == 1, 31, 1).astype(np.int64)
+    else:
+        classes = np.where(scene.object_masks[0] == UNLABELLED, CHOLECSEG8K_UNLABELLED_VALUE,
+                           scene.object_masks[0]).astype(np.int64)
+    labels = ({1: ("tissue", "unknown_tissue", False), 31: ("tool", "instrument", True)} if set(scene.labels) <= {0, 1}
+              else CHOLECSEG_CLASSES)
+    return {"format": detect_format(d), "rgb": scene.frames[0], "classes": classes, "depth": None if scene.depth is None else scene.depth[0],
+            "K": scene.K, "labels": labels}
 
 
 def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: int | None = None,
@@ -132,23 +96,18 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     if not (0 < s <= 1.0):
         raise DataError(f"--scale for --from must be in (0, 1] (a downscale), got {s}")
     W, H = max(16, round(W0 * s)), max(16, round(H0 * s))
-    rgb = cv2.resize(fr["rgb"], (W, H), interpolation=cv2.INTER_AREA)
-    classes = cv2.resize(fr["classes"].astype(np.uint8 if fr["classes"].max() < 256 else np.uint16), (W, H),
-                         interpolation=cv2.INTER_NEAREST).astype(np.int64)
-    if fr["focal"] is not None:
-        focal = fr["focal"] * W / W0
-        cam = Camera.from_focal(focal, W, H)
-    else:
-        cam = proc.endoscope_camera(W, H, 70.0)
-        focal = float(cam.K[0, 0])
+    rgb = resize(fr["rgb"], (W, H))
+    classes = resize(fr["classes"].astype(np.int32), (W, H), nearest=True).astype(np.int64)
+    focal = float(fr["K"][0, 0]) * W / W0  # the loader's intrinsics (its default field of view without any)
+    cam = Camera.from_focal(focal, W, H)
     if fr["depth"] is not None:
-        rel = cv2.resize(fr["depth"], (W, H), interpolation=cv2.INTER_NEAREST)
+        rel = resize(fr["depth"], (W, H), nearest=True)
         med = np.median(rel[rel > 0]) if (rel > 0).any() else 1.0
         depth = np.where(rel > 0, rel / med * nominal_depth, nominal_depth)
         depth_source = "data (relative, median rescaled to nominal_depth)"
     else:
-        depth = _bowl_depth(H, W, nominal_depth)
-        depth_source = f"fallback bowl z = {nominal_depth} (1 - 0.25 r^2)"
+        depth = fallback_depth(cam.K.double().numpy(), W, H, 1, nominal_depth)[0].astype(np.float64)
+        depth_source = f"fallback bowl at {nominal_depth} m (endogsim.priors.depth.fallback_depth)"
 
     labels = fr["labels"]
     T = int(frames if frames is not None else 12)
@@ -276,6 +235,6 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
                              {"type": "static", "objects": [labels[c][0] for c in present if labels[c][2]]}],
         extrusion={"along": "viewing_rays", "thickness": 0.008}, particle_spacing=p_sp, source=str(data_dir),
         extra={"depth_source": depth_source, "interaction": interaction, "downscale": s,
-               "layout": fr["layout"], "material_source": f"{', '.join(sorted(mat_sources))} x deterministic perturbation (seed {seed}), "
+               "layout": fr["format"], "material_source": f"{', '.join(sorted(mat_sources))} x deterministic perturbation (seed {seed}), "
                                   "E capped at CFL 0.45 for the identification defaults"},
     )

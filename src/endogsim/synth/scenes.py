@@ -25,7 +25,6 @@ from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.physics import MPMConfig, extrude_along_rays, p_wave_speed, plan_substeps
-from endogsim.physics.particles import camera_center
 from endogsim.synth import procedural as proc
 from endogsim.synth.spec import ObjectTruth, SimSettings, ToolTruth, scene_spec
 
@@ -172,7 +171,7 @@ def tissue_from_surface(points: np.ndarray, edge_dist: np.ndarray, thickness: fl
     Returns x [P, 3], ids [P], vol [P] (m^3), anchored [P] bool.
     """
     pts = torch.as_tensor(points, dtype=torch.float64)
-    xt, src_t = extrude_along_rays(pts, camera_center(camera), thickness, spacing)
+    xt, src_t = extrude_along_rays(pts, camera.center().double(), thickness, spacing)
     x, src = xt.numpy(), src_t.numpy()
     layer = np.arange(len(x)) // len(points)
     n_layers = int(layer.max()) + 1
