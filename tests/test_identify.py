@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from endogsim.errors import DataError, SimulationError
-from endogsim.identify import IdentifyConfig, identify, load_problem
-from endogsim.identify.forward import material_tables
-from endogsim.identify.optimize import _project, stable_log10_E_max
-from endogsim.identify.problem import capsule_collider_points
+from endogsim.identify import IdentifyConfig, identify
+from endogsim.identify.optimize import project_into_search_box, stable_log10_E_max
+from endogsim.physics import capsule_collider_points
+from endogsim.scene.folder import load_sim_scene
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField, MaterialRecord
 
@@ -29,12 +29,12 @@ def tiny(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def problem(tiny):
-    return load_problem(tiny)
+    return load_sim_scene(tiny)
 
 
 def field_from_truth(problem, E_factor=1.0, nu=None, E_override=None) -> MaterialField:
     recs = []
-    for o in problem.truth.objects:
+    for o in problem.spec.objects:
         E = o.E if o.rigid else (E_override if E_override is not None else o.E * E_factor)
         recs.append(MaterialRecord(name=o.name, object_id=o.id, klass=o.klass, rigid=o.rigid,
                                    model="rigid" if o.rigid else "fixed_corotated", E=E,
@@ -129,7 +129,7 @@ def test_gradient_matches_finite_differences(run3, problem):
 
 def test_rigid_objects_stay_frozen(run3, problem):
     res, _ = run3
-    tool = next(o for o in problem.truth.objects if o.rigid)
+    tool = next(o for o in problem.spec.objects if o.rigid)
     assert res.field[tool.id].E == tool.E and res.field[tool.id].nu == tool.nu and res.field[tool.id].rigid
     assert res.field[tool.id].source == "manual"
     assert all(set(h["E"]) == {"1"} for h in res.history)  # only the deformable object is a parameter
@@ -162,7 +162,7 @@ def test_search_box_respects_the_stability_limit(problem):
     fld = field_from_truth(problem, E_override=1e8)
     cfg = fast_config()
     params = fld.to_params(nu_bounds=cfg.nu_bounds)
-    _project(params, problem, fld, cfg)
+    project_into_search_box(params, problem, fld, cfg)
     from endogsim.physics import max_stable_E
 
     emax = max_stable_E(float(params.nu()[0]), 1060.0, problem.mpm, problem.scenario.box.size)
@@ -181,8 +181,9 @@ def test_global_material_ties_parameters():
     p = fld.to_params(global_material=True, nu_bounds=(0.0, 0.49))
     assert p.log10_E.shape == (1,) and p.object_ids == [1, 2]
     assert float(p.E()[0]) == pytest.approx(6000.0)  # geometric mean
-    log10_E, nu, rho = material_tables(fld, p)
-    assert log10_E[1] == log10_E[2] and nu[1] == nu[2]
+    mats = fld.simulator_materials(p)
+    log10_E = torch.log10(mats.E)
+    assert log10_E[1] == log10_E[2] and mats.nu[1] == mats.nu[2]
     assert float(log10_E[3]) == pytest.approx(math.log10(2e11))  # rigid: untouched
     # A gradient through either object reaches the single shared parameter.
     (log10_E[1] + 2 * log10_E[2]).backward()
@@ -235,7 +236,7 @@ def test_recovers_E_within_10_percent_from_3x_off(problem, tmp_path):
     """From E 3x too stiff (nu known), identification lands within 10% of the true E."""
     cfg = IdentifyConfig(iters=20, optimize_nu=False, patience=6, time_budget=None)
     res = identify(problem, field_from_truth(problem, 3.0), cfg, run_dir=tmp_path / "run")
-    E_true = next(o.E for o in problem.truth.objects if not o.rigid)
+    E_true = next(o.E for o in problem.spec.objects if not o.rigid)
     assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)
 
 

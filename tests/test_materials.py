@@ -110,20 +110,22 @@ def test_manual_backend_one_value_for_deformables():
 
 
 # ---- optimisation view ---------------------------------------------------------------------------------------------
-def test_per_object_and_per_particle_expansion():
+def test_simulator_materials_per_object():
+    from endogsim.physics.constitutive import model_id
+
     f = initialise_materials(LABELS, MaterialInitConfig(backend="prior"))
-    table = f.per_object()
-    assert table["E"].shape == (5,) and np.isnan(table["E"][3]) and table["rigid"][2]
-    ids = torch.tensor([4, 0, 0, 2, 1, 4])
-    E, nu, rho = f.per_particle(ids)
-    expect = [f[i] for i in ids.tolist()]
-    assert torch.allclose(E, torch.tensor([r.E for r in expect], dtype=torch.float32))
-    assert torch.allclose(nu, torch.tensor([r.nu for r in expect], dtype=torch.float32))
-    assert torch.allclose(rho, torch.tensor([r.density for r in expect], dtype=torch.float32))
-    with pytest.raises(MaterialError, match=r"\[3\]"):
-        f.per_particle(torch.tensor([0, 3]))
-    with pytest.raises(MaterialError):
-        f.per_particle(torch.tensor([7]))
+    mats = f.simulator_materials()
+    assert mats.E.shape == (5,) and torch.isnan(mats.E[3])  # id 3 has no record
+    for r in f.records:
+        assert float(mats.E[r.object_id]) == r.E and float(mats.nu[r.object_id]) == r.nu
+        assert float(mats.density[r.object_id]) == r.density
+        assert int(mats.model[r.object_id]) == (-1 if r.rigid else model_id(r.model))
+    used = mats.used(torch.tensor([4, 0, 0, 1, 4]))
+    assert used.E.tolist() == [f[i].E for i in (0, 1, 4)]
+    with pytest.raises(MaterialError, match="rigid"):  # the tool (id 2) has no particles
+        mats.used(torch.tensor([0, 2]))
+    with pytest.raises(MaterialError, match="0..4"):
+        mats.used(torch.tensor([7]))
 
 
 def test_to_params_from_params_round_trip():
@@ -142,15 +144,15 @@ def test_to_params_from_params_round_trip():
     assert f.from_params(p)[2].E == 2e11  # the rigid tool is frozen
 
 
-def test_per_particle_gradient_matches_finite_difference():
+def test_simulator_materials_gradient_matches_finite_difference():
     f = initialise_materials(LABELS, MaterialInitConfig(backend="prior"))
     p = f.to_params()
     ids = torch.tensor([0, 0, 1, 2, 4, 4, 4])
-    w = torch.linspace(0.5, 2.0, len(ids))
+    w = torch.linspace(0.5, 2.0, len(ids), dtype=torch.float64)
 
     def loss(params):
-        E, nu, _ = f.per_particle(ids, params)
-        return (w * (torch.log(E) + 10 * nu)).sum()
+        mats = f.simulator_materials(params)
+        return (w * (torch.log(mats.E[ids]) + 10 * mats.nu[ids])).sum()
 
     loss(p).backward()
     grads = torch.cat([p.log10_E.grad, p.nu_raw.grad])
@@ -177,7 +179,7 @@ def test_global_material_ties_objects():
         p.log10_E[0] = 4.0
     g = f.from_params(p)
     assert [g[i].E for i in (0, 1, 4)] == pytest.approx([1e4] * 3) and g[2].E == 2e11
-    E, _, _ = f.per_particle(torch.tensor([0, 1, 4, 2]), p)
+    E = f.simulator_materials(p).E[torch.tensor([0, 1, 4, 2])]
     E.sum().backward()
     assert p.log10_E.grad.shape == (1,) and p.log10_E.grad.item() > 0
 

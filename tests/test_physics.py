@@ -17,6 +17,7 @@ from endogsim.physics import (
     Anchor,
     ExternalForce,
     MPMConfig,
+    ObjectMaterials,
     Particles,
     RigidCollider,
     Scenario,
@@ -33,8 +34,8 @@ from endogsim.physics import (
 BOX = SimBox((0.0, 0.0, 0.0), 0.1)
 
 
-def _mats(E=2e4, nu=0.3, rho=1000.0):
-    return torch.tensor([E]), torch.tensor([nu]), torch.tensor([rho])
+def _mats(E=2e4, nu=0.3, rho=1000.0, model="fixed_corotated"):
+    return ObjectMaterials.of([E], [nu], [rho], model)
 
 
 def test_momentum_conserved_in_free_flight():
@@ -47,7 +48,7 @@ def test_momentum_conserved_in_free_flight():
     drift = torch.tensor([0.3, -0.2, 0.1])
     parts.v = v + drift
     cfg = MPMConfig(grid_res=32)
-    res = simulate(parts, *_mats(), Scenario(BOX), cfg, num_frames=5)
+    res = simulate(parts, _mats(), Scenario(BOX), cfg, num_frames=5)
     com = res.positions.double().mean(1)  # equal particle masses
     expected = com[0] + res.times[:, None] * drift.double()
     assert torch.allclose(com, expected, atol=2e-6), (com - expected).abs().max()
@@ -67,7 +68,7 @@ def test_column_settles_to_static_deflection_under_own_weight():
     parts = Particles.box((x0, y0, x0), (x0 + 4 * dx, y0 + L, x0 + 4 * dx), sp)
     scen = Scenario(BOX, gravity=(0.0, -g, 0.0), anchors=[Anchor(lo=(0, 0, 0), hi=(0.1, y0 + 1e-6, 0.1), kind="sticky")])
     cfg = MPMConfig(grid_res=32, damping=120.0)  # damping ratio ~0.4 for the first axial mode: settles in 0.2 s
-    res = simulate(parts, torch.tensor([E]), torch.tensor([0.0]), torch.tensor([rho]), scen, cfg, num_frames=50)
+    res = simulate(parts, _mats(E, 0.0, rho), scen, cfg, num_frames=50)
     y_rest = parts.x[:, 1]
     top = y_rest > y_rest.max() - 1e-6
     delta = float((y_rest[top] - res.positions[-1][top, 1]).mean())
@@ -83,7 +84,7 @@ def test_stiffer_material_deforms_less():
     cfg = MPMConfig(grid_res=32)
     sag = []
     for E in (5e3, 5e4):
-        res = simulate(parts, *_mats(E=E), scen, cfg, num_frames=8)
+        res = simulate(parts, _mats(E=E), scen, cfg, num_frames=8)
         sag.append(float((parts.x[:, 1] - res.positions[-1][:, 1]).max()))
     assert sag[1] < 0.5 * sag[0], sag
 
@@ -99,8 +100,8 @@ def test_rigid_collider_pushes_tissue_and_is_not_moved():
     col = RigidCollider(points=plate, transforms=transforms, radius=0.004)
     scen = Scenario(BOX, colliders=[col])
     cfg = MPMConfig(grid_res=32)
-    soft = simulate(parts, *_mats(E=5e3), scen, cfg, num_frames=T)
-    stiff = simulate(parts, *_mats(E=5e4), scen, cfg, num_frames=T)
+    soft = simulate(parts, _mats(E=5e3), scen, cfg, num_frames=T)
+    stiff = simulate(parts, _mats(E=5e4), scen, cfg, num_frames=T)
     # The collider follows its prescribed path whatever the tissue does (kinematic, not pushed back).
     assert torch.allclose(soft.colliders[0], stiff.colliders[0])
     assert torch.allclose(soft.colliders[0][-1].double(), plate + torch.tensor([0.006, 0.0, 0.0], dtype=torch.float64), atol=1e-7)
@@ -122,7 +123,7 @@ def test_sim_box_scale_invariance():
     for size, res in ((0.1, 16), (0.2, 32)):
         scen = Scenario(SimBox((0.0, 0.0, 0.0), size), gravity=(0.0, -9.81, 0.0),
                         anchors=[Anchor(lo=(0, 0, 0), hi=(1, 0.032, 1), kind="fixed")])
-        out.append(simulate(parts, *_mats(E=1e4), scen, MPMConfig(grid_res=res), num_frames=4).positions)
+        out.append(simulate(parts, _mats(E=1e4), scen, MPMConfig(grid_res=res), num_frames=4).positions)
     assert (out[0] - out[1]).abs().max() < 2e-6
 
 
@@ -131,14 +132,14 @@ def test_external_force_window_and_impulse():
     cfg = MPMConfig(grid_res=32)
     frame_dt = cfg.frame_dt
     push = ExternalForce(acceleration=(2.0, 0.0, 0.0), lo=(0, 0, 0), hi=(1, 1, 1), t_start=0.0, t_end=2 * frame_dt)
-    res = simulate(parts, *_mats(), Scenario(BOX, forces=[push]), cfg, num_frames=5)
+    res = simulate(parts, _mats(), Scenario(BOX, forces=[push]), cfg, num_frames=5)
     com_x = res.positions[:, :, 0].double().mean(1)
     # a t^2 / 2 for two frames, then uniform motion at a t1.
     t1 = 2 * frame_dt
     expect = com_x[0] + torch.where(res.times < t1, 0.5 * 2.0 * res.times**2, 0.5 * 2.0 * t1**2 + 2.0 * t1 * (res.times - t1))
     assert torch.allclose(com_x, expect, atol=2e-6)
     kick = ExternalForce(acceleration=(0.0, 0.0, 0.5), lo=(0, 0, 0), hi=(1, 1, 1), t_start=0.0, impulse=True)
-    res = simulate(parts, *_mats(), Scenario(BOX, forces=[kick]), cfg, num_frames=3)
+    res = simulate(parts, _mats(), Scenario(BOX, forces=[kick]), cfg, num_frames=3)
     com_z = res.positions[:, :, 2].double().mean(1)
     assert torch.allclose(com_z - com_z[0], 0.5 * res.times, atol=2e-6)
 
@@ -153,7 +154,7 @@ def test_unstable_explicit_dt_is_refused_with_the_limit():
     E, nu, rho = 1e6, 0.45, 1000.0
     cfg = MPMConfig(grid_res=32, dt=2e-4)
     with pytest.raises(SimulationError, match=r"unstable.*CFL limit is ([0-9.e-]+) s"):
-        simulate(parts, *_mats(E, nu, rho), Scenario(BOX), cfg, num_frames=2)
+        simulate(parts, _mats(E, nu, rho), Scenario(BOX), cfg, num_frames=2)
     # The automatic choice takes more substeps instead, and respects the limit.
     n, dt = plan_substeps(MPMConfig(grid_res=32), BOX.size, E, nu, rho)
     c_p = math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu) * rho))
@@ -168,15 +169,15 @@ def test_absurd_materials_end_in_clear_errors_or_finite_results():
     parts = Particles.box((0.04, 0.04, 0.04), (0.05, 0.05, 0.05), 0.0015)
     scen, cfg = Scenario(BOX, gravity=(0, -9.81, 0)), MPMConfig(grid_res=32)
     with pytest.raises(SimulationError, match="substeps per frame"):
-        simulate(parts, *_mats(E=1e12, nu=0.4999), scen, cfg, num_frames=2)
+        simulate(parts, _mats(E=1e12, nu=0.4999), scen, cfg, num_frames=2)
     for bad in (dict(E=-1.0), dict(nu=0.5), dict(nu=float("nan")), dict(rho=0.0)):
         with pytest.raises(MaterialError):
-            simulate(parts, *_mats(**bad), scen, cfg, num_frames=2)
+            simulate(parts, _mats(**bad), scen, cfg, num_frames=2)
     # Nearly incompressible but soft: many substeps, finite result.
-    res = simulate(parts, *_mats(E=300.0, nu=0.4999), scen, cfg, num_frames=2)
+    res = simulate(parts, _mats(E=300.0, nu=0.4999), scen, cfg, num_frames=2)
     assert res.substeps > 25 and torch.isfinite(res.positions).all()
     with pytest.raises(MaterialError, match="object ids"):
-        simulate(Particles(parts.x, parts.volume, torch.full_like(parts.object_ids, 3)), *_mats(), scen, cfg, num_frames=2)
+        simulate(Particles(parts.x, parts.volume, torch.full_like(parts.object_ids, 3)), _mats(), scen, cfg, num_frames=2)
 
 
 def test_particles_thrown_out_of_the_domain_stay_finite_and_inside():
@@ -187,7 +188,7 @@ def test_particles_thrown_out_of_the_domain_stay_finite_and_inside():
                         torch.zeros(2, dtype=torch.int64))
     parts = Particles.concat([parts, outside])
     kick = ExternalForce(acceleration=(40.0, 0.0, 0.0), lo=(0, 0, 0), hi=(1, 1, 1), impulse=True)
-    res = simulate(parts, *_mats(), Scenario(BOX, forces=[kick]), MPMConfig(grid_res=32), num_frames=4)
+    res = simulate(parts, _mats(), Scenario(BOX, forces=[kick]), MPMConfig(grid_res=32), num_frames=4)
     assert torch.isfinite(res.positions).all() and torch.isfinite(res.F).all()
     inner = res.positions[1:]
     assert inner.min() >= 0.0 and inner.max() <= BOX.size
@@ -206,7 +207,7 @@ def test_cpu_and_cuda_trajectories_agree():
         pytest.skip("CUDA is not available")
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.06), 0.0015)
     scen = Scenario(BOX, gravity=(0, -9.81, 0), anchors=[Anchor(lo=(0, 0, 0), hi=(0.1, 0.0416, 0.1))])
-    out = [simulate(parts, *_mats(), scen, MPMConfig(grid_res=32, device=d), num_frames=6).positions for d in ("cpu", "cuda")]
+    out = [simulate(parts, _mats(), scen, MPMConfig(grid_res=32, device=d), num_frames=6).positions for d in ("cpu", "cuda")]
     assert (out[0] - out[1]).abs().max() < 1e-5
 
 
@@ -263,13 +264,13 @@ def test_slip_anchor_stops_normal_motion_only_and_mask_pins_particles():
     parts.v = torch.zeros(len(parts), 3)
     parts.v[:, 0] = 0.2
     floor = Anchor(lo=(0, 0, 0), hi=(0.1, 0.03125 + 1e-6, 0.1), kind="slip", normal=(0.0, 1.0, 0.0))
-    res = simulate(parts, *_mats(E=5e4), Scenario(BOX, gravity=(0, -9.81, 0), anchors=[floor]), MPMConfig(grid_res=32), 8)
+    res = simulate(parts, _mats(E=5e4), Scenario(BOX, gravity=(0, -9.81, 0), anchors=[floor]), MPMConfig(grid_res=32), 8)
     com = res.positions.double().mean(1)
     assert abs(float(com[-1, 0] - com[0, 0]) - 0.2 * float(res.times[-1])) < 2e-4  # slides freely
     assert float(com[0, 1] - com[-1, 1]) < 0.25 * 0.5 * 9.81 * float(res.times[-1]) ** 2  # held up
     # A particle mask pins exactly those particles.
     mask = parts.x[:, 0] < 0.042
-    res = simulate(parts, *_mats(E=5e4), Scenario(BOX, anchors=[Anchor(particle_mask=mask)]), MPMConfig(grid_res=32), 4)
+    res = simulate(parts, _mats(E=5e4), Scenario(BOX, anchors=[Anchor(particle_mask=mask)]), MPMConfig(grid_res=32), 4)
     assert torch.equal(res.positions[-1][mask], parts.x[mask])
     assert (res.positions[:, ~mask, 0] - parts.x[~mask, 0]).abs().max() > 1e-4  # the rest still moves
 
@@ -285,13 +286,14 @@ def test_plasticity_keeps_the_elastic_strain_inside_the_yield_surface():
     pos = plate[None].repeat(T, 1, 1)
     pos[:, :, 1] -= torch.linspace(0.0, 0.008, T, dtype=torch.float64)[:, None]
     scen = Scenario(BOX, anchors=[Anchor(lo=(0, 0, 0), hi=(0.1, 0.0401, 0.1))], colliders=[RigidCollider(positions=pos, radius=0.003)])
-    res = simulate(parts, *_mats(E=E, nu=nu), scen, MPMConfig(grid_res=32, yield_stress=yield_stress), T)
+    plastic = ObjectMaterials.of([E], [nu], [1000.0], "fixed_corotated", yield_stress=[yield_stress])
+    res = simulate(parts, plastic, scen, MPMConfig(grid_res=32), T)
     s = torch.linalg.svdvals(res.F[-1].double())
     eps = torch.log(s)
     dev = eps - eps.mean(1, keepdim=True)
     mu = E / (2 * (1 + nu))
     assert dev.norm(dim=1).max() <= yield_stress / (2 * mu) * 1.01
-    elastic = simulate(parts, *_mats(E=E, nu=nu), scen, MPMConfig(grid_res=32), T)
+    elastic = simulate(parts, _mats(E=E, nu=nu), scen, MPMConfig(grid_res=32), T)
     e_el = torch.log(torch.linalg.svdvals(elastic.F[-1].double()))
     assert (e_el - e_el.mean(1, keepdim=True)).norm(dim=1).max() > 2 * yield_stress / (2 * mu)  # it did yield
 
@@ -316,7 +318,7 @@ def test_matches_the_pure_pytorch_reference_solver():
     # The capsule as a dense line of collider points (a union of balls of radius r ~ the capsule).
     line = torch.as_tensor(np.linspace(a, b, 301))
     traj = line[None] + torch.as_tensor(offsets)[:, None]
-    res = simulate(parts, *_mats(E, nu, rho), Scenario(BOX, colliders=[RigidCollider(positions=traj, radius=r)]),
+    res = simulate(parts, _mats(E, nu, rho), Scenario(BOX, colliders=[RigidCollider(positions=traj, radius=r)]),
                    MPMConfig(grid_res=32), T)
     disp_ref = torch.as_tensor(ref.x[-1]) - parts.x.double()
     disp = res.positions[-1].double() - parts.x.double()
@@ -345,7 +347,7 @@ def _sagging_slab(substeps: int, reference: bool = False, frames: int = 6):
             density=np.full(P, rho), anchored=anchored, box_lo=np.zeros(3), box_size=0.1, grid=32,
             dt=frame_dt / substeps, substeps=substeps, frames=frames, gravity=np.array(g)))
         return torch.as_tensor(ref.x[-1]) - parts.x.double()
-    res = simulate(parts, *_mats(E, nu, rho), Scenario(BOX, gravity=g, anchors=[Anchor(particle_mask=anchored)]),
+    res = simulate(parts, _mats(E, nu, rho), Scenario(BOX, gravity=g, anchors=[Anchor(particle_mask=anchored)]),
                    MPMConfig(grid_res=32, frame_dt=frame_dt, substeps_per_frame=substeps, dt=frame_dt / substeps), frames)
     return res.positions[-1].double() - parts.x.double()
 

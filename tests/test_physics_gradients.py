@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from endogsim.physics import Anchor, MPMConfig, Particles, Scenario, SimBox, mpm_rollout
+from endogsim.physics import Anchor, MPMConfig, ObjectMaterials, Particles, Scenario, SimBox, mpm_rollout
 
 T = 4
 BOX = SimBox((0.0, 0.0, 0.0), 1.0)
@@ -22,19 +22,23 @@ BOX = SimBox((0.0, 0.0, 0.0), 1.0)
 def _setup(model: str, plastic: bool = False):
     parts = Particles.box((0.35, 0.3, 0.35), (0.65, 0.6, 0.65), 0.05)
     scen = Scenario(BOX, gravity=(0.0, -9.81, 0.0), anchors=[Anchor(lo=(0, 0, 0), hi=(1, 0.36, 1), kind="fixed")])
-    cfg = MPMConfig(grid_res=16, frame_dt=0.01, substeps_per_frame=10, material_model=model,
-                    yield_stress=2e3 if plastic else None)
+    cfg = MPMConfig(grid_res=16, frame_dt=0.01, substeps_per_frame=10)
     g = torch.Generator().manual_seed(0)
     w = torch.randn(T, len(parts), 3, generator=g, dtype=torch.float64)
     v0 = torch.zeros(len(parts), 3)
     v0[:, 1] = -0.5
-    return parts, scen, cfg, w, v0
+    return parts, scen, cfg, w, v0, (model, [2e3] if plastic else None)
+
+
+def _materials(setup, lE, nu, rho):
+    model, yield_stress = setup[5]
+    return ObjectMaterials.of(10.0 ** lE, nu, rho, model, yield_stress=yield_stress)
 
 
 def _loss(setup, lE, nu, rho, mode, x0=None, v0=None, frames=T):
-    parts, scen, cfg, w, v0_default = setup
+    parts, scen, cfg, w, v0_default, _ = setup
     v0 = v0_default if v0 is None else v0
-    pos, F = mpm_rollout(parts, lE, nu, rho, scen, cfg, frames, grad_mode=mode, x0=x0, v0=v0)
+    pos, F = mpm_rollout(parts, _materials(setup, lE, nu, rho), scen, cfg, frames, grad_mode=mode, x0=x0, v0=v0)
     return 10.0 * (w[1:frames] * (pos[1:].double() - parts.x.double())).sum() + 0.1 * (F[1:].double() ** 2).sum()
 
 
@@ -104,15 +108,14 @@ def test_initial_state_gradients_match_finite_differences():
 
 def test_last_substep_gradient_sign_matches_near_the_optimum():
     setup = _setup("fixed_corotated")
-    parts, scen, cfg, _, v0 = setup
+    parts, scen, cfg, _, v0, _ = setup
     with torch.no_grad():
-        target, _ = mpm_rollout(parts, torch.tensor([5.0]), torch.tensor([0.3]), torch.tensor([1000.0]), scen, cfg, T, v0=v0)
+        target, _ = mpm_rollout(parts, _materials(setup, torch.tensor([5.0]), [0.3], [1000.0]), scen, cfg, T, v0=v0)
     results = {}
     for lE0 in (4.95, 5.05):
         for mode in ("last_substep", "full"):
             lE = torch.tensor([lE0], dtype=torch.float64, requires_grad=True)
-            pos, _ = mpm_rollout(parts, lE, torch.tensor([0.3]), torch.tensor([1000.0]), scen, cfg, T,
-                                 grad_mode=mode, v0=v0)
+            pos, _ = mpm_rollout(parts, _materials(setup, lE, [0.3], [1000.0]), scen, cfg, T, grad_mode=mode, v0=v0)
             ((pos[1:].double() - target[1:].double()) ** 2).sum().backward()
             results[(lE0, mode)] = float(lE.grad)
     assert results[(4.95, "full")] < 0 < results[(5.05, "full")]

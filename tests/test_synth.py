@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from endogsim.errors import DataError
-from endogsim.synth import load_scene_truth, suite_scene_names, synthesize
+from endogsim.synth import load_scene_spec, suite_scene_names, synthesize
 from endogsim.synth.scenes import build_procedural
 
 TINY_FRAMES = 5
@@ -35,7 +35,7 @@ def _read(path, flags):
 def test_tiny_folder_layout_and_scene_json(tiny):
     import cv2
 
-    truth = load_scene_truth(tiny)
+    truth = load_scene_spec(tiny)
     assert truth.name == "tiny" and truth.frames == TINY_FRAMES and truth.seed == 0
     H, W = truth.camera.height, truth.camera.width
     for sub, n in (("images", TINY_FRAMES), ("depth", TINY_FRAMES), ("masks", TINY_FRAMES), ("object_masks", TINY_FRAMES)):
@@ -64,7 +64,7 @@ def test_tiny_loads_with_the_endonerf_loader(tiny):
     if not hasattr(io, "load_scene"):
         pytest.skip("endogsim.io.load_scene not available yet")
     scene = io.load_scene(tiny)
-    truth = load_scene_truth(tiny)
+    truth = load_scene_spec(tiny)
     assert scene.frames.shape == (TINY_FRAMES, truth.camera.height, truth.camera.width, 3)
     if scene.depth is not None:
         assert scene.depth.shape == scene.frames.shape[:3]
@@ -76,7 +76,7 @@ def test_masks_and_object_ids_agree_with_gaussians(tiny):
 
     from endogsim.gaussians.ply import read_ply
 
-    truth = load_scene_truth(tiny)
+    truth = load_scene_spec(tiny)
     g = read_ply(tiny / "gaussians_t0.ply")
     ids = {o.id for o in truth.objects}
     assert set(np.unique(g.object_ids.numpy()).tolist()) == ids
@@ -159,7 +159,7 @@ def test_every_suite_scene_builds_within_stability_limits(name):
 
 def test_suite_materials_lie_in_the_priors_in_vivo_range():
     prior = pytest.importorskip("endogsim.materials.prior")
-    from endogsim.synth.spec import load_suite
+    from endogsim.synth.suite import load_suite
 
     table = prior.load_prior_table()["classes"]
     for name, s in load_suite()["scenes"].items():
@@ -170,7 +170,7 @@ def test_suite_materials_lie_in_the_priors_in_vivo_range():
 
 
 def test_suite_materials_are_distinct_per_scene():
-    from endogsim.synth.spec import load_suite
+    from endogsim.synth.suite import load_suite
 
     suite = load_suite()
     values = [(o["E"], o["nu"]) for s in suite["scenes"].values() for o in s["objects"]]
@@ -185,7 +185,7 @@ def test_from_real_data_folders(tmp_path):
         if not src.is_dir():
             continue
         out = synthesize(name, tmp_path / name, seed=0, frames=3, from_dir=src, width=96)
-        truth = load_scene_truth(out)
+        truth = load_scene_spec(out)
         assert truth.source == str(src)
         assert any(o.rigid for o in truth.objects) and any(not o.rigid for o in truth.objects)
         for o in truth.deformable:
@@ -240,7 +240,7 @@ def test_loaded_depth_is_the_ground_truth_depth_in_metres(tiny):
     from endogsim.gaussians.render import rasterize
     from endogsim.io import load_scene
 
-    truth = load_scene_truth(tiny)
+    truth = load_scene_spec(tiny)
     scene = load_scene(tiny)
     g = read_ply(tiny / "gaussians_t0.ply")
     cam = Camera(torch.tensor(truth.camera.K, dtype=torch.float32), truth.camera.width, truth.camera.height)
@@ -254,11 +254,11 @@ def test_loaded_depth_is_the_ground_truth_depth_in_metres(tiny):
 
 def test_cached_scenes_from_an_older_generator_are_synthesized_again(tmp_path):
     from endogsim.bench.identify import ensure_scene
-    from endogsim.synth.spec import GENERATOR_REVISION
+    from endogsim.synth.suite import GENERATOR_REVISION
 
     folder = ensure_scene("tiny", tmp_path, frames=3)
     meta = json.loads((folder / "scene.json").read_text())
     assert meta["generator"] == GENERATOR_REVISION
     meta["generator"] = GENERATOR_REVISION - 1
     (folder / "scene.json").write_text(json.dumps(meta))
-    assert load_scene_truth(ensure_scene("tiny", tmp_path, frames=3)).generator == GENERATOR_REVISION
+    assert load_scene_spec(ensure_scene("tiny", tmp_path, frames=3)).generator == GENERATOR_REVISION

@@ -31,13 +31,13 @@ def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: 
         frames: number of frames (default: the suite's); scale: image-size factor (default 1).
     """
     from endogsim.errors import DataError
-    from endogsim.synth import load_scene_truth, synthesize
-    from endogsim.synth.spec import GENERATOR_REVISION
+    from endogsim.synth import load_scene_spec, synthesize
+    from endogsim.synth.suite import GENERATOR_REVISION
 
     tag = name + ("" if frames is None else f"_f{frames}") + ("" if scale in (None, 1.0) else f"_s{scale:g}")
     folder = scenes_dir / tag
     try:
-        fresh = load_scene_truth(folder).generator == GENERATOR_REVISION
+        fresh = load_scene_spec(folder).generator == GENERATOR_REVISION
     except DataError:  # missing or unreadable
         fresh = False
     if not fresh:  # a scene from an older generator has another ground truth

@@ -42,6 +42,12 @@ def _scene(particles: int, device: str):
     return parts, scen, cfg, mats
 
 
+def _materials(log10_E, nu, rho):
+    from endogsim.physics import ObjectMaterials
+
+    return ObjectMaterials.of(10.0 ** log10_E, nu, rho, "fixed_corotated")
+
+
 def measure(particles: int, device: str, frames: int) -> dict:
     """Forward and forward+backward (frame mode) throughput for one case."""
     import torch
@@ -51,16 +57,16 @@ def measure(particles: int, device: str, frames: int) -> dict:
     parts, scen, cfg, (lE, nu, rho) = _scene(particles, device)
     T = frames + 1
     # Warm-up (kernel compile / load, first allocations).
-    mpm_rollout(parts, lE, nu, rho, scen, cfg, 2, grad_mode="frame")
+    mpm_rollout(parts, _materials(lE, nu, rho), scen, cfg, 2, grad_mode="frame")
 
     t0 = time.perf_counter()
     with torch.no_grad():
-        pos, _ = mpm_rollout(parts, lE, nu, rho, scen, cfg, T, grad_mode="frame")
+        pos, _ = mpm_rollout(parts, _materials(lE, nu, rho), scen, cfg, T, grad_mode="frame")
     t_fwd = time.perf_counter() - t0
 
     lE_, nu_, rho_ = (a.clone().requires_grad_(True) for a in (lE, nu, rho))
     t0 = time.perf_counter()
-    pos, F = mpm_rollout(parts, lE_, nu_, rho_, scen, cfg, T, grad_mode="frame")
+    pos, F = mpm_rollout(parts, _materials(lE_, nu_, rho_), scen, cfg, T, grad_mode="frame")
     t_mid = time.perf_counter()
     (pos[1:] - parts.x).square().sum().backward()
     t_end = time.perf_counter()
@@ -83,7 +89,7 @@ def _peak_child(particles: int, device: str, frames: int) -> None:
 
     parts, scen, cfg, (lE, nu, rho) = _scene(particles, device)
     lE = lE.clone().requires_grad_(True)
-    pos, F = mpm_rollout(parts, lE, nu, rho, scen, cfg, frames + 1, grad_mode="full")
+    pos, F = mpm_rollout(parts, _materials(lE, nu, rho), scen, cfg, frames + 1, grad_mode="full")
     (pos[1:] - parts.x).square().sum().backward()
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     gpu_mb = None

@@ -34,7 +34,7 @@ ABLATION_SCENE = "two_tissues"
 
 
 def _default_scenes() -> list[str]:
-    from endogsim.synth.spec import suite_scene_names
+    from endogsim.synth.suite import suite_scene_names
 
     return [n for n in suite_scene_names() if n != "tiny"]
 
@@ -63,14 +63,15 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     import torch
 
     from endogsim.bench.identify import ensure_scene
-    from endogsim.identify import IdentifyConfig, load_problem, run_identify
+    from endogsim.identify import IdentifyConfig, run_identify
+    from endogsim.scene.folder import load_sim_scene
 
     if threads:
         torch.set_num_threads(threads)
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
-    problem = load_problem(folder)
+    problem = load_sim_scene(folder)
     net = None
     if fid_weights:
         from endogsim.evaluate.fid import load_inception
@@ -147,7 +148,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "wall_seconds"}
     """
-    from endogsim.synth.spec import suite_scene_names
+    from endogsim.synth.suite import suite_scene_names
 
     t0 = time.perf_counter()
     scenes = list(scenes) if scenes else (["tiny"] if quick else _default_scenes())

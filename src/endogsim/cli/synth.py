@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
         """Simulate a benchmark scene and write frames, depth, masks, ground-truth flow, scene.json, PLY."""
         from endogsim.cli.common import console, print_table, progress
         from endogsim.errors import DataError
-        from endogsim.synth.spec import load_suite
+        from endogsim.synth.suite import load_suite
 
         if list_scenes:
             suite = load_suite()
@@ -61,9 +61,9 @@ def register(app: typer.Typer) -> None:
                                   from_dir=from_dir, progress=cb, interaction=interaction)
             else:
                 path = synthesize(scene, out, seed=seed, frames=frames, scale=scale, progress=cb)
-        from endogsim.synth.spec import load_scene_truth
+        from endogsim.scene.schema import load_scene_spec
 
-        sc = load_scene_truth(path).scenario
+        sc = load_scene_spec(path).scenario
         gt, idn = sc.ground_truth, sc.identification
         console.print(f"wrote {path} (ground truth: grid {gt.grid}^3, {gt.substeps} substeps of {gt.dt:.2g} s; "
                       f"identification: grid {idn.grid}^3, {idn.substeps} substeps of {idn.dt:.2g} s)")

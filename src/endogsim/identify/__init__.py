@@ -2,19 +2,19 @@
 
 Typical use::
 
-    from endogsim.identify import IdentifyConfig, load_problem, identify, run_identify
+    from endogsim.identify import IdentifyConfig, identify, run_identify
+    from endogsim.scene import load_sim_scene
 
     metrics = run_identify("scenes/press", "runs/press", init="prior", config=IdentifyConfig(iters=30))
 
     # or step by step
-    problem = load_problem("scenes/press")
+    problem = load_sim_scene("scenes/press")
     result = identify(problem, init_field, IdentifyConfig(loss="joint", grad_mode="frame"), run_dir="runs/press")
     result.field.save("materials_identified.json")
 
-Modules: :mod:`~endogsim.identify.config` (options), :mod:`~endogsim.identify.problem` (scene folder ->
-simulator and renderer inputs), :mod:`~endogsim.identify.forward` (simulate + render),
-:mod:`~endogsim.identify.loss` (the paper's loss), :mod:`~endogsim.identify.optimize` (the Adam loop,
+Modules: :mod:`~endogsim.identify.config` (options), :mod:`~endogsim.identify.loss` (the paper's loss), :mod:`~endogsim.identify.optimize` (the Adam loop,
 checkpoints), :mod:`~endogsim.identify.report` (metrics, plots, video), :mod:`~endogsim.identify.run`.
+The scene it identifies, and simulate-then-render, come from :mod:`endogsim.scene`.
 """
 
 from importlib import import_module
@@ -24,7 +24,6 @@ from importlib import import_module
 _EXPORTS = {
     "GRAD_MODES": "config", "LOSSES": "config", "IdentifyConfig": "config",
     "IdentifyResult": "optimize", "check_stable": "optimize", "identify": "optimize",
-    "IdentifyProblem": "problem", "load_problem": "problem",
     "INIT_CHOICES": "run", "initial_field": "run", "run_identify": "run",
 }
 

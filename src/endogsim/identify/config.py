@@ -6,11 +6,10 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any, Literal
 
 from endogsim.errors import MaterialError
+from endogsim.physics.modes import GRAD_MODES, GradMode
 
 LossKind = Literal["joint", "render", "flow"]
-GradMode = Literal["last_substep", "frame", "full"]
 LOSSES = ("joint", "render", "flow")
-GRAD_MODES = ("last_substep", "frame", "full")
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endogsim.identify.forward import Rendered
+from endogsim.scene.forward import Rendered
 from endogsim.io.atomic import save_npz_atomic
 from endogsim.io.images import resize_frames
 

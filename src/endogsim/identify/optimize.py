@@ -27,9 +27,9 @@ import torch
 
 from endogsim.errors import DataError, SimulationError
 from endogsim.identify.config import IdentifyConfig
-from endogsim.identify.forward import material_tables, render_sequence, simulate_materials
+from endogsim.scene.forward import render_sequence, simulate_materials
 from endogsim.identify.loss import Observations, identification_loss, make_observations, observed_flow
-from endogsim.identify.problem import IdentifyProblem
+from endogsim.scene.folder import SimScene
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams
 from endogsim.physics import max_stable_E
@@ -100,7 +100,7 @@ class IdentifyResult:
     notes: list[str] = field(default_factory=list)
 
 
-def stable_log10_E_max(problem: IdentifyProblem, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
+def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
     """Upper end of the search box for log10 E per parameter slot: margin * the CFL limit at ``nu`` (and E_max)."""
     out = []
     for n, rho in zip(nu.detach().double().tolist(), density.detach().double().tolist()):
@@ -111,7 +111,7 @@ def stable_log10_E_max(problem: IdentifyProblem, nu: torch.Tensor, density: torc
     return torch.tensor(out, dtype=torch.float64)
 
 
-def check_stable(problem: IdentifyProblem, fld: MaterialField) -> None:
+def check_stable(problem: SimScene, fld: MaterialField) -> None:
     """Refuse materials the identification discretisation cannot simulate stably (clear message).
 
     Used for materials a user asked for explicitly (a materials file); guesses of an initialiser (prior,
@@ -131,7 +131,7 @@ def check_stable(problem: IdentifyProblem, fld: MaterialField) -> None:
                 "or raise the substeps in scene.json")
 
 
-def _slot_density(problem: IdentifyProblem, fld: MaterialField, params: MaterialParams) -> torch.Tensor:
+def _slot_density(problem: SimScene, fld: MaterialField, params: MaterialParams) -> torch.Tensor:
     """Density per parameter slot (the largest of the tied objects under a global material: the stiffer bound)."""
     n = params.log10_E.shape[0]
     rho = [0.0] * n
@@ -141,7 +141,7 @@ def _slot_density(problem: IdentifyProblem, fld: MaterialField, params: Material
     return torch.tensor(rho, dtype=torch.float64)
 
 
-def _project(params: MaterialParams, problem: IdentifyProblem, fld: MaterialField, config: IdentifyConfig) -> None:
+def project_into_search_box(params: MaterialParams, problem: SimScene, fld: MaterialField, config: IdentifyConfig) -> None:
     """Clamp log10 E into [log10 E_min, log10 E_max(nu)] in place (keeps the simulation stable)."""
     with torch.no_grad():
         hi = stable_log10_E_max(problem, params.nu(), _slot_density(problem, fld, params), config)
@@ -155,7 +155,7 @@ def _values(params: MaterialParams) -> tuple[dict[str, float], dict[str, float]]
     return ({str(o): E[params.slot(o)] for o in params.object_ids}, {str(o): nu[params.slot(o)] for o in params.object_ids})
 
 
-def _signature(problem: IdentifyProblem, init: MaterialField, config: IdentifyConfig) -> dict:
+def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig) -> dict:
     cfg = config.to_json()
     cfg.pop("iters", None)  # a resumed run may be given a larger budget
     cfg.pop("time_budget", None)
@@ -164,7 +164,7 @@ def _signature(problem: IdentifyProblem, init: MaterialField, config: IdentifyCo
             "init": init.to_json()["objects"]}
 
 
-def prepare_observations(problem: IdentifyProblem, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
+def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
     """Observed flow (cached in ``run_dir``) and the observations at the rendering scale, plus the camera."""
     cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
     U = observed_flow(problem.frames, config.flow_estimator, config.flow_weights, cache)
@@ -173,18 +173,17 @@ def prepare_observations(problem: IdentifyProblem, config: IdentifyConfig, run_d
     return obs, cam
 
 
-def evaluate_loss(problem: IdentifyProblem, fld: MaterialField, params: MaterialParams | None, obs: Observations,
+def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams | None, obs: Observations,
                   camera, config: IdentifyConfig, grad: bool):
     """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects)."""
-    log10_E, nu, rho = material_tables(fld, params)
     with torch.set_grad_enabled(grad):
-        pos, F = simulate_materials(problem, log10_E, nu, rho, problem.num_frames, config.grad_mode)
+        pos, F = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
         rendered = render_sequence(problem, pos, F, camera, frames=range(0, problem.num_frames, config.frame_stride))
         return identification_loss(rendered, obs, config.loss, config.flow_weight)
 
 
 def identify(
-    problem: IdentifyProblem,
+    problem: SimScene,
     init_field: MaterialField,
     config: IdentifyConfig | None = None,
     run_dir: str | Path | None = None,
@@ -196,7 +195,7 @@ def identify(
     """Identify E and nu of the deformable objects of ``problem`` from its observed video.
 
     Args:
-        problem: the scene (see :func:`endogsim.identify.load_problem`).
+        problem: the scene (see :func:`endogsim.identify.load_sim_scene`).
         init_field: starting materials (every object id of the scene needs a record); rigid objects stay as given.
         config: options (default :class:`IdentifyConfig`).
         run_dir: folder for the flow cache and the checkpoint (None: nothing written, no resume).
@@ -227,7 +226,7 @@ def identify(
     if not keep_ids:
         raise DataError(f"{problem.folder}: no deformable object of the scene has a non-rigid initial material")
     before = params.E().detach().clone()
-    _project(params, problem, init_field, cfg)
+    project_into_search_box(params, problem, init_field, cfg)
     notes = []
     after = params.E().detach()
     for oid in params.object_ids:
@@ -291,7 +290,7 @@ def identify(
         else:
             stale += 1
         opt.step()
-        _project(params, problem, init_field, cfg)
+        project_into_search_box(params, problem, init_field, cfg)
         seconds += time.perf_counter() - t0
         rec["seconds"] = seconds
         rec["converged"] = stale >= cfg.patience

@@ -28,11 +28,10 @@ from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
 from endogsim.identify.config import IdentifyConfig
-from endogsim.identify.forward import material_tables, render_sequence
+from endogsim.scene.forward import render_sequence
 from endogsim.identify.optimize import IdentifyResult
-from endogsim.identify.problem import IdentifyProblem
+from endogsim.scene.folder import SimScene
 from endogsim.materials.field import MaterialField
-from endogsim.physics import simulate
 
 __all__ = ["Evaluation", "evaluate_field", "material_errors", "write_outputs"]
 
@@ -58,12 +57,10 @@ class Evaluation:
     flow_error: np.ndarray
 
 
-def evaluate_field(problem: IdentifyProblem, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
+def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
     """Simulate ``fld`` (no gradients; substeps from the CFL rule), render, and score it."""
-    log10_E, nu, rho = material_tables(fld)
     with torch.no_grad():
-        res = simulate(problem.particles, torch.pow(10.0, log10_E), nu, rho, problem.scenario, problem.mpm,
-                       problem.num_frames)
+        res = problem.simulator().simulate(fld.simulator_materials())
         r = render_sequence(problem, res.positions, res.F, problem.camera)
     rgb = r.rgb.clamp(0, 1).numpy()
     flow = r.flow.numpy()
@@ -80,12 +77,12 @@ def evaluate_field(problem: IdentifyProblem, fld: MaterialField, observed_flow: 
     return Evaluation(rgb, flow, float(e), float(p), float(s), err)
 
 
-def material_errors(problem: IdentifyProblem, fld: MaterialField) -> dict | None:
+def material_errors(problem: SimScene, fld: MaterialField) -> dict | None:
     """RE of the deformable objects against ``scene.json``'s ground truth (every synthesized scene has it)."""
-    if not problem.has_truth:
+    if not problem.has_ground_truth:
         return None
-    truth = {o.name: (o.E, o.nu) for o in problem.truth.objects if not o.rigid}
-    est = {o.name: (fld[o.id].E, fld[o.id].nu) for o in problem.truth.objects if not o.rigid}
+    truth = {o.name: (o.E, o.nu) for o in problem.spec.objects if not o.rigid}
+    est = {o.name: (fld[o.id].E, fld[o.id].nu) for o in problem.spec.objects if not o.rigid}
     return scene_relative_errors(est, truth)
 
 
@@ -105,7 +102,7 @@ def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: n
                      for t in range(T)])
 
 
-def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: IdentifyResult, config: IdentifyConfig,
+def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult, config: IdentifyConfig,
                   init_name: str, video: bool = True, evaluate_init: bool = False) -> dict:
     """Evaluate the identified field and write the run folder (see the module docstring). Returns metrics."""
     from endogsim.io.video_writer import write_video
@@ -123,7 +120,7 @@ def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: Identif
     ev = evaluate_field(problem, result.field, obs_flow)
     re = material_errors(problem, result.field)
     metrics: dict = {
-        "scene": problem.truth.name, "folder": str(problem.folder), "init": init_name,
+        "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "seconds": result.seconds,
@@ -143,14 +140,14 @@ def write_outputs(run_dir: str | Path, problem: IdentifyProblem, result: Identif
                                    **({"re_mean": re0["re_mean"]} if re0 else {})}
     write_json_atomic(run / "metrics.json", metrics)
 
-    names = {str(o.id): o.name for o in problem.truth.objects}
-    truth = {str(o.id): (o.E, o.nu) for o in problem.truth.objects if not o.rigid} if problem.has_truth else {}
+    names = {str(o.id): o.name for o in problem.spec.objects}
+    truth = {str(o.id): (o.E, o.nu) for o in problem.spec.objects if not o.rigid} if problem.has_ground_truth else {}
     if result.history:
-        plot_loss(result.history, run / "loss.png", result.best_iteration, title=f"{problem.truth.name}: {config.loss} loss")
+        plot_loss(result.history, run / "loss.png", result.best_iteration, title=f"{problem.spec.name}: {config.loss} loss")
         plot_parameters(result.history, run / "parameters.png", names, truth)
     if video:
         write_video(comparison_frames(problem.frames, ev.rgb, ev.flow_error), run / "comparison.mp4", fps=10)
-    lines = [f"EndoGSim identification of {problem.folder} ({problem.truth.name})",
+    lines = [f"EndoGSim identification of {problem.folder} ({problem.spec.name})",
              f"init {init_name}; loss {config.loss}; grad mode {config.grad_mode}; "
              f"{'global material' if config.global_material else 'object-wise material field'}",
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "

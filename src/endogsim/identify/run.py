@@ -10,7 +10,7 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import identify
-from endogsim.identify.problem import IdentifyProblem, load_problem
+from endogsim.scene.folder import SimScene, load_sim_scene
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField
 
@@ -19,7 +19,7 @@ __all__ = ["initial_field", "run_identify", "INIT_CHOICES"]
 INIT_CHOICES = ("manual", "prior", "mllm", "replay")
 
 
-def initial_field(problem: IdentifyProblem, init: str = "prior") -> tuple[MaterialField, bool]:
+def initial_field(problem: SimScene, init: str = "prior") -> tuple[MaterialField, bool]:
     """The starting material field and whether it is an explicit user request (a file: strict stability).
 
     Args:
@@ -53,7 +53,7 @@ def run_identify(
     progress: Callable[[int, int, dict], None] | None = None,
     video: bool = True,
     evaluate_init: bool = False,
-    problem: IdentifyProblem | None = None,
+    problem: SimScene | None = None,
 ) -> dict:
     """Identify the materials of a scene folder and write the run folder ``out``; returns metrics.json's dict.
 
@@ -71,7 +71,7 @@ def run_identify(
     out = Path(out)
     if not resume and (out / "checkpoint.pt").is_file():
         (out / "checkpoint.pt").unlink()
-    pb = problem or load_problem(scene, frames=cfg.frames, device=cfg.device)
+    pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device)
     fld, strict = initial_field(pb, init)
     result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict)
     return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)

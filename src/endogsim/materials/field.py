@@ -1,7 +1,8 @@
 """The object-wise material field: one record per object, JSON in physical units, and its optimisation view.
 
-The simulator indexes per-object arrays by object id, so :meth:`MaterialField.per_object` returns arrays of
-length ``max(object_id) + 1``; :meth:`MaterialField.per_particle` gathers them through particle object ids.
+The simulator indexes per-object arrays by object id, so :meth:`MaterialField.simulator_materials` returns
+:class:`~endogsim.physics.materials.ObjectMaterials` of length ``max(object_id) + 1``, each record's
+constitutive model and yield stress included.
 """
 
 from __future__ import annotations
@@ -17,14 +18,21 @@ import torch
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from endogsim.errors import MaterialError
+from endogsim.physics.constitutive import model_names as constitutive_model_names
+from endogsim.physics.materials import ObjectMaterials
 from endogsim.io.atomic import write_json_atomic
 
-MaterialModel = Literal["fixed_corotated", "neo_hookean", "rigid", "fluid"]
+#: Material kinds the simulator does not integrate as elastic solids (rigid instruments, fluids).
+NON_SIMULATED_MODELS = ("rigid", "fluid")
 Regime = Literal["in_vivo", "ex_vivo_tensile"]
 
 
 class MaterialRecord(BaseModel):
-    """The material of one object. E and E_min/E_max in Pa, density in kg/m^3.
+    """The material of one object. E, E_min/E_max and yield_stress in Pa, density in kg/m^3.
+
+    ``model`` is a constitutive model the simulator implements (:mod:`endogsim.physics.constitutive`:
+    "neo_hookean", "fixed_corotated", ...) or "rigid" / "fluid"; ``yield_stress`` (von Mises) makes the
+    object elastoplastic, None keeps it elastic.
 
     ``source`` says where the value came from: "manual", "prior", "mllm:<model>", "replay:<model>",
     "prior (mllm fallback: <reason>)" or "identified".
@@ -35,13 +43,14 @@ class MaterialRecord(BaseModel):
     name: str
     object_id: int
     klass: str
-    model: MaterialModel = "neo_hookean"
+    model: str = "neo_hookean"
     rigid: bool = False
     E: float
     nu: float
     density: float
     E_min: float | None = None
     E_max: float | None = None
+    yield_stress: float | None = None
     source: str = "manual"
     confidence: float | None = None
     regime: Regime = "in_vivo"
@@ -66,6 +75,11 @@ class MaterialRecord(BaseModel):
             raise MaterialError(f"{who}: confidence {self.confidence} must lie in [0, 1]")
         if self.model == "rigid" and not self.rigid:
             raise MaterialError(f"{who}: model 'rigid' needs rigid = true")
+        known = constitutive_model_names() + list(NON_SIMULATED_MODELS)
+        if self.model not in known:
+            raise MaterialError(f"{who}: material model {self.model!r} is not one of {', '.join(known)}")
+        if self.yield_stress is not None and (not math.isfinite(self.yield_stress) or self.yield_stress <= 0):
+            raise MaterialError(f"{who}: yield_stress = {self.yield_stress} Pa must be finite and > 0 (or null)")
         return self
 
 
@@ -168,53 +182,35 @@ class MaterialField:
         return cls.from_json(obj, where=str(path))
 
     # ---- arrays for the simulator -------------------------------------------------------------------------------
-    def per_object(self) -> dict[str, np.ndarray]:
-        """Arrays indexed by object id, length max_id + 1: E [Pa], nu, rho [kg/m^3], rigid (bool).
-
-        Ids without a record get E = nu = rho = NaN so a particle carrying one is caught, not simulated silently.
-        """
-        n = max((r.object_id for r in self.records), default=-1) + 1
-        out = {k: np.full(n, np.nan) for k in ("E", "nu", "rho")}
-        out["rigid"] = np.zeros(n, dtype=bool)
-        for r in self.records:
-            out["E"][r.object_id], out["nu"][r.object_id], out["rho"][r.object_id] = r.E, r.nu, r.density
-            out["rigid"][r.object_id] = r.rigid
-        return out
-
-    def per_particle(
-        self, object_ids: torch.Tensor | np.ndarray, params: MaterialParams | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Expand to particles.
+    def simulator_materials(self, params: MaterialParams | None = None) -> ObjectMaterials:
+        """Per-object arrays for the simulator (length max id + 1): E [Pa], nu, density [kg/m^3], the
+        constitutive model and the yield stress of every record.
 
         Args:
-            object_ids: [P] int object id of each particle.
-            params: optional optimisation view; its (differentiable) E, nu replace the deformable records'.
-        Returns:
-            E [P] Pa, nu [P], rho [P] kg/m^3 (float32 torch tensors on object_ids' device; differentiable in
-            ``params`` when given).
+            params: optional optimisation view; its (differentiable) E and nu replace the deformable records'.
+        Ids without a record get E = nu = density = NaN so that a particle carrying one is refused by the
+        simulator, not simulated silently; records whose model the simulator does not implement ("rigid",
+        "fluid") get model id -1, refused likewise if particles carry them.
         """
-        ids = torch.as_tensor(object_ids, dtype=torch.long)
-        table = self.per_object()
-        n = len(table["E"])
-        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= n):
-            raise MaterialError(f"particle object ids span [{int(ids.min())}, {int(ids.max())}], field has ids 0..{n - 1}")
-        present = {r.object_id for r in self.records}
-        missing = sorted(set(torch.unique(ids).tolist()) - present)
-        if missing:
-            raise MaterialError(f"particles carry object ids {missing} that have no material record")
-        E_obj = torch.as_tensor(table["E"], dtype=torch.float32, device=ids.device)
-        nu_obj = torch.as_tensor(table["nu"], dtype=torch.float32, device=ids.device)
-        rho_obj = torch.as_tensor(table["rho"], dtype=torch.float32, device=ids.device)
+        n = max((r.object_id for r in self.records), default=-1) + 1
+        E, nu, rho, ys = (np.full(n, np.nan) for _ in range(4))
+        model = np.full(n, -1, dtype=np.int64)
+        simulated = constitutive_model_names()
+        for r in self.records:
+            i = r.object_id
+            E[i], nu[i], rho[i], ys[i] = r.E, r.nu, r.density, r.yield_stress or 0.0
+            model[i] = simulated.index(r.model) if r.model in simulated else -1
+        t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+        E_t, nu_t = t(E), t(nu)
         if params is not None:
             # Scatter differentiable values into the per-object table (torch.where keeps the graph).
-            E_p, nu_p = params.E().to(ids.device, torch.float32), params.nu().to(ids.device, torch.float32)
-            idx = torch.zeros(n, dtype=torch.long, device=ids.device)
-            mask = torch.zeros(n, dtype=torch.bool, device=ids.device)
+            idx = torch.zeros(n, dtype=torch.long)
+            mask = torch.zeros(n, dtype=torch.bool)
             for oid in params.object_ids:
                 idx[oid], mask[oid] = params.slot(oid), True
-            E_obj = torch.where(mask, E_p[idx], E_obj)
-            nu_obj = torch.where(mask, nu_p[idx], nu_obj)
-        return E_obj[ids], nu_obj[ids], rho_obj[ids]
+            E_t = torch.where(mask, params.E().double()[idx], E_t)
+            nu_t = torch.where(mask, params.nu().double()[idx], nu_t)
+        return ObjectMaterials(E_t, nu_t, t(rho), torch.as_tensor(model), t(np.nan_to_num(ys)))
 
     # ---- optimisation view --------------------------------------------------------------------------------------
     def to_params(

@@ -5,30 +5,35 @@ sim-box conversion (E_sim = s^2 E, g_sim = s g) happens only in :mod:`endogsim.p
 
 Typical use::
 
-    from endogsim.physics import (MPMConfig, Scenario, SimBox, Anchor, RigidCollider, ExternalForce,
-                                  Particles, particles_from_gaussians, simulate, mpm_rollout,
-                                  bind_gaussians, drive_gaussians)
+    from endogsim.physics import (MPMConfig, Scenario, SimBox, Anchor, RigidCollider, ObjectMaterials,
+                                  particles_from_gaussians, simulate, mpm_rollout, bind_gaussians,
+                                  drive_gaussians)
 
     parts = particles_from_gaussians(gaussians, spacing=0.002, object_ids=[21], thickness=0.01, camera=cam)
     box = SimBox.around(parts.x, margin=0.3)
     scen = Scenario(box, gravity=(0, 9.81, 0), anchors=[Anchor(lo=..., hi=..., kind="fixed")],
                     colliders=[RigidCollider(positions=tool_xyz)])          # tool_xyz [T, Pc, 3]
-    res = simulate(parts, E=E_obj, nu=nu_obj, density=rho_obj, scenario=scen, config=MPMConfig(),
-                   num_frames=T)                                           # res.positions [T, P, 3]
-    pos, F = mpm_rollout(parts, log10_E, nu, rho, scen, MPMConfig(), T, grad_mode="frame")
+    mats = ObjectMaterials.of(E=E_obj, nu=nu_obj, density=rho_obj, model="neo_hookean")   # per object id
+    res = simulate(parts, mats, scen, MPMConfig(), num_frames=T)           # res.positions [T, P, 3]
+    pos, F = mpm_rollout(parts, mats, scen, MPMConfig(), T, grad_mode="frame")   # differentiable in E, nu, rho
     binding = bind_gaussians(gaussians.means, gaussians.object_ids, parts)
     means, covs, sh = drive_gaussians(gaussians, binding, pos[t], F[t])     # render with covars=covs
 
-Per-object material arrays (E, nu, density, log10_E) are indexed by object id (length max_id + 1, as
-:meth:`endogsim.materials.field.MaterialField.per_object` returns them); only ids carried by particles
-are read.
+Layout: :mod:`~endogsim.physics.config` (numerics and the world), :mod:`~endogsim.physics.materials`
+(per-object material arrays), :mod:`~endogsim.physics.constitutive` (one module per constitutive model,
+a name -> id registry), :mod:`~endogsim.physics.kernels` (the substep's Warp kernels and their structs),
+:mod:`~endogsim.physics.engine` (static arrays, launches, taped segments), :mod:`~endogsim.physics.rollout`
+(forward and differentiable rollouts), :mod:`~endogsim.physics.stability` (CFL rules),
+:mod:`~endogsim.physics.particles` (particles from Gaussians, Gaussians that follow particles),
+:mod:`~endogsim.physics.reference` (a pure-PyTorch reference solver for the tests).
 
 Public API
 ----------
 - :class:`SimBox` (lo, size): world cube covered by the grid; ``SimBox.around(points, margin)``.
 - :class:`MPMConfig`: grid_res=50, frame_dt=5e-3 s, substeps_per_frame=25 (minimum), dt=None (auto from
-  CFL; explicit unstable dt refused), material_model "fixed_corotated"|"neo_hookean", yield_stress (Pa,
-  von Mises) or None, cfl_number=0.5, damping (1/s), wall "slip"|"sticky", device "cpu"|"cuda".
+  CFL; explicit unstable dt refused), cfl_number=0.5, damping (1/s), wall "slip"|"sticky", device "cpu"|"cuda".
+- :class:`ObjectMaterials` (per object id: E Pa, nu, density kg/m^3, constitutive model, von Mises yield
+  stress Pa); constitutive models: :func:`~endogsim.physics.constitutive.model_names`.
 - :class:`Scenario` (box, gravity m/s^2, anchors, forces, colliders); :class:`Anchor` (world box and/or
   particle mask; "fixed" | "sticky" | "slip"); :class:`ExternalForce` (acceleration m/s^2 on a region over
   [t_start, t_end), or an impulse = velocity change); :class:`RigidCollider` (points [Pc,3] + transforms
@@ -36,45 +41,43 @@ Public API
 - :class:`Particles` (x [P,3] m, volume [P] m^3, object_ids [P], v [P,3] m/s or None);
   ``Particles.box(lo, hi, spacing, object_id)``; :func:`particles_from_gaussians`.
 - :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`.
-- :func:`simulate` (particles, E [M] Pa, nu [M], density [M] kg/m^3, scenario, config, num_frames, v0=None)
-  -> :class:`SimResult` (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
-- :func:`mpm_rollout` (particles, log10_E [M], nu [M], density [M], scenario, config, num_frames,
-  grad_mode "last_substep"|"frame"|"full", x0=None, v0=None) -> (positions [T,P,3], F [T,P,3,3]),
-  differentiable w.r.t. log10_E, nu, density, x0 and v0.
+- :func:`simulate` (particles, materials, scenario, config, num_frames, v0=None) -> :class:`SimResult`
+  (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
+- :func:`mpm_rollout` (particles, materials, scenario, config, num_frames, grad_mode
+  "last_substep"|"frame"|"full", x0=None, v0=None) -> (positions [T,P,3], F [T,P,3,3]), differentiable
+  w.r.t. the materials' E, nu, density, x0 and v0. :class:`Simulator`: the same set-up rolled out many times.
 - :func:`plan_substeps`, :func:`max_stable_E`, :func:`p_wave_speed`: the CFL rules.
 - :func:`bind_gaussians`, :func:`drive_gaussians` (means, F Sigma F^T covariances, rotated SH),
-  :func:`rotate_sh`, :func:`polar_rotation`.
+  :func:`rotate_sh`, :func:`polar_rotation_torch`.
 
 Errors: :class:`~endogsim.errors.MaterialError` for impossible materials, and
 :class:`~endogsim.errors.SimulationError` for unstable dt (the message gives the limit), materials that
 need more than ``max_substeps_per_frame``, or a diverged rollout (the message names the frame).
 """
 
-from endogsim.physics.config import Anchor, ExternalForce, MPMConfig, RigidCollider, Scenario
-from endogsim.physics.particles import (
-    GaussianBinding,
-    Particles,
-    bind_gaussians,
-    capsule_collider_points,
-    drive_gaussians,
-    extrude_along_rays,
-    particles_from_gaussians,
-    polar_rotation,
-    rotate_sh,
-)
-from endogsim.physics.rollout import (
-    SimResult,
-    max_stable_E,
-    mpm_rollout,
-    p_wave_speed,
-    plan_substeps,
-    simulate,
-)
-from endogsim.physics.units import SimBox
+from importlib import import_module
 
-__all__ = [
-    "Anchor", "ExternalForce", "GaussianBinding", "MPMConfig", "Particles", "RigidCollider", "Scenario",
-    "SimBox", "SimResult", "bind_gaussians", "capsule_collider_points", "drive_gaussians", "extrude_along_rays", "max_stable_E",
-    "mpm_rollout", "p_wave_speed", "particles_from_gaussians", "plan_substeps", "polar_rotation",
-    "rotate_sh", "simulate",
-]
+# Names load lazily (PEP 562): callers that need only the light modules (``modes``, ``units``) do not pull
+# in Warp and the kernels.
+_EXPORTS = {
+    "GRAD_MODES": "modes", "GradMode": "modes",
+    "Anchor": "config", "ExternalForce": "config", "MPMConfig": "config", "RigidCollider": "config",
+    "Scenario": "config",
+    "ObjectMaterials": "materials",
+    "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",
+    "capsule_collider_points": "particles", "drive_gaussians": "particles", "extrude_along_rays": "particles",
+    "particles_from_gaussians": "particles", "rotate_sh": "particles",
+    "polar_rotation_torch": "polar",
+    "SimResult": "rollout", "Simulator": "rollout", "mpm_rollout": "rollout", "simulate": "rollout",
+    "check_materials": "stability", "max_stable_E": "stability", "p_wave_speed": "stability",
+    "plan_substeps": "stability",
+    "SimBox": "units",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(f"endogsim.physics.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'endogsim.physics' has no attribute {name!r}")

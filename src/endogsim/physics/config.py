@@ -15,13 +15,12 @@ import torch
 from endogsim.errors import SimulationError
 from endogsim.physics.units import SimBox
 
-MaterialModelName = Literal["fixed_corotated", "neo_hookean"]
-GradMode = Literal["last_substep", "frame", "full"]
 
 
 @dataclass
 class MPMConfig:
-    """Numerics of the MLS-MPM solver.
+    """Numerics of the MLS-MPM solver (the materials, constitutive models included, are per object:
+    :class:`~endogsim.physics.materials.ObjectMaterials`).
 
     Attributes:
         grid_res: grid cells per axis over the sim box (paper: 50).
@@ -31,8 +30,6 @@ class MPMConfig:
         dt: explicit substep in seconds, or None to choose it from the CFL condition. An explicit dt above
             the stable limit is refused with :class:`SimulationError` giving the limit.
         max_substeps_per_frame: refuse materials that would need more substeps than this (e.g. E = 1e12 Pa).
-        material_model: "fixed_corotated" (the paper's / PhysGaussian's jelly) or "neo_hookean".
-        yield_stress: von Mises yield stress (Pa) for plasticity (F = F^E F^P), or None for pure elasticity.
         cfl_number: C in dt <= C dx / c_p (0.3 to 1 is stable for explicit MPM).
         damping: grid velocity damping rate (1/s); v *= exp(-damping dt) each substep.
         wall: grid domain walls: "slip" (separating: outward normal velocity removed) or "sticky" (v = 0).
@@ -45,8 +42,6 @@ class MPMConfig:
     substeps_per_frame: int = 25
     dt: float | None = None
     max_substeps_per_frame: int = 4000
-    material_model: MaterialModelName = "fixed_corotated"
-    yield_stress: float | None = None
     cfl_number: float = 0.5
     damping: float = 0.0
     wall: Literal["slip", "sticky"] = "slip"
@@ -62,10 +57,6 @@ class MPMConfig:
             raise SimulationError(f"MPMConfig.substeps_per_frame = {self.substeps_per_frame} must be >= 1")
         if self.dt is not None and not (self.dt > 0 and np.isfinite(self.dt)):
             raise SimulationError(f"MPMConfig.dt = {self.dt} s must be > 0")
-        if self.material_model not in ("fixed_corotated", "neo_hookean"):
-            raise SimulationError(f"MPMConfig.material_model {self.material_model!r} is not fixed_corotated|neo_hookean")
-        if self.yield_stress is not None and not self.yield_stress > 0:
-            raise SimulationError(f"MPMConfig.yield_stress = {self.yield_stress} Pa must be > 0 (or None)")
         if not (0 < self.cfl_number <= 1.0):
             raise SimulationError(f"MPMConfig.cfl_number = {self.cfl_number} must lie in (0, 1]")
         if self.damping < 0:

@@ -4,6 +4,11 @@ One substep is: ``collider_to_grid`` (kinematic instruments) -> ``p2g`` (APIC tr
 momentum, plus the elastic force) -> ``grid_update`` (momentum -> velocity, gravity, damping, boundary
 conditions) -> ``g2p`` (velocity, affine matrix C, F update, plasticity return mapping, advection).
 
+Inputs are packed in structs, Newton-style: :class:`ParticleState` (what a substep advances),
+:class:`ParticleModel` (what never changes in a rollout), :class:`MaterialTable` (per object id: moduli,
+density, constitutive model, yield stress), :class:`ForceTable`, :class:`Domain` (grid geometry, boundary
+conditions, gravity) and :class:`GridState` / :class:`ColliderGrid` (per-substep grid buffers).
+
 Rules followed so that Warp's tape gives correct gradients (DESIGN.md section 4):
   - no kernel reads an array that it (or a later kernel of the same taped segment) overwrites: every
     substep reads state k and writes fresh arrays for state k + 1 and for its own grid;
@@ -19,14 +24,88 @@ from __future__ import annotations
 
 import warp as wp
 
-# Material models (an int kernel argument, so both share one compiled kernel).
-FIXED_COROTATED = 0
-NEO_HOOKEAN = 1
+from endogsim.physics.constitutive import MODELS
+from endogsim.physics.polar import proper_svd_rotations
 
 # Per-node boundary condition kinds.
 BC_FREE = 0
 BC_STICKY = 1
 BC_SLIP = 2
+
+
+@wp.struct
+class ParticleState:
+    """Particle state at one instant: positions, velocities, APIC affine matrices, deformation gradients."""
+
+    x: wp.array(dtype=wp.vec3)
+    v: wp.array(dtype=wp.vec3)
+    C: wp.array(dtype=wp.mat33)
+    F: wp.array(dtype=wp.mat33)
+
+
+@wp.struct
+class ParticleModel:
+    """Per-particle data that a rollout never changes: volume, object id, pinned flag, force region (-1: none)."""
+
+    vol: wp.array(dtype=float)
+    obj: wp.array(dtype=wp.int32)
+    pinned: wp.array(dtype=wp.int32)
+    force_region: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class MaterialTable:
+    """Per-object-id materials (sim units): E, nu, density, constitutive model id, von Mises yield stress
+    (0: purely elastic). E, nu and rho are differentiable."""
+
+    E: wp.array(dtype=float)
+    nu: wp.array(dtype=float)
+    rho: wp.array(dtype=float)
+    model: wp.array(dtype=wp.int32)
+    yield_stress: wp.array(dtype=float)
+
+
+@wp.struct
+class ForceTable:
+    """External accelerations per force region: value, window [t0, t1) (s); t1 < 0 marks an impulse (a
+    velocity change applied once, over the substep that starts at t0)."""
+
+    acc: wp.array(dtype=wp.vec3)
+    t0: wp.array(dtype=float)
+    t1: wp.array(dtype=float)
+
+
+@wp.struct
+class Domain:
+    """The grid: n nodes per axis, 1 / dx, wall padding (cells) and kind, the band particles stay in
+    [x_lo, x_hi], per-node boundary conditions, gravity (sim units)."""
+
+    n: int
+    inv_dx: float
+    pad: int
+    sticky_walls: int
+    x_lo: float
+    x_hi: float
+    bc_kind: wp.array3d(dtype=wp.int32)
+    bc_normal: wp.array3d(dtype=wp.vec3)
+    gravity: wp.vec3
+
+
+@wp.struct
+class GridState:
+    """Per-substep grid: mass, momentum, velocity."""
+
+    m: wp.array3d(dtype=float)
+    mv: wp.array3d(dtype=wp.vec3)
+    v: wp.array3d(dtype=wp.vec3)
+
+
+@wp.struct
+class ColliderGrid:
+    """Per-substep collider marks: number of collider points near each node and their summed velocity."""
+
+    w: wp.array3d(dtype=float)
+    mv: wp.array3d(dtype=wp.vec3)
 
 
 @wp.func
@@ -51,84 +130,36 @@ def bspline_weights(fx: wp.vec3):
 
 
 @wp.func
-def proper_svd_rotations(F: wp.mat33):
-    """SVD F = U diag(s) V^T with U, V proper rotations (a reflection moves into the last singular value)."""
-    U = wp.mat33()
-    s = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    if wp.determinant(U) < 0.0:
-        U = wp.mat33(U[0, 0], U[0, 1], -U[0, 2], U[1, 0], U[1, 1], -U[1, 2], U[2, 0], U[2, 1], -U[2, 2])
-        s = wp.vec3(s[0], s[1], -s[2])
-    if wp.determinant(V) < 0.0:
-        V = wp.mat33(V[0, 0], V[0, 1], -V[0, 2], V[1, 0], V[1, 1], -V[1, 2], V[2, 0], V[2, 1], -V[2, 2])
-        s = wp.vec3(s[0], s[1], -s[2])
-    return U, s, V
+def lame(E: float, nu: float):
+    """Lame parameters (mu, lambda) of Young's modulus E and Poisson's ratio nu."""
+    return wp.vec2(E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)))
 
 
 @wp.func
-def polar_rotation(F: wp.mat33):
-    """Rotation R of the polar decomposition F = R S.
-
-    Scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986): a few 3x3 inverses instead of an
-    SVD, about 5x cheaper on CPU, and exact at F = I. An inverted or degenerate F (det <= 1e-6) takes
-    the SVD path, whose proper rotations keep R a rotation. Its gradient is the custom adjoint below, so
-    this loop needs no autodiff.
-    """
-    R = wp.identity(n=3, dtype=float)
-    if wp.determinant(F) <= 1.0e-6:
-        U, s, V = proper_svd_rotations(F)
-        R = U * wp.transpose(V)
-    else:
-        X = F
-        it = int(0)
-        change = float(1.0)
-        while it < 20 and change > 1.0e-6:
-            Xit = wp.transpose(wp.inverse(X))
-            g = wp.sqrt(wp.sqrt(wp.ddot(Xit, Xit) / wp.ddot(X, X)))
-            Xn = 0.5 * (g * X + Xit / g)
-            D = Xn - X
-            change = wp.sqrt(wp.ddot(D, D))
-            X = Xn
-            it = it + 1
-        R = X
-    return R
+def kirchhoff_stress(model: int, F: wp.mat33, mu: float, lam: float):
+    """Kirchhoff stress tau = P F^T of the registered constitutive model ``model`` (sim-unit moduli)."""
+    tau = wp.mat33(0.0)
+    for i in range(wp.static(len(MODELS))):
+        if model == i:
+            tau = wp.static(MODELS[i].stress)(F, mu, lam)
+    return tau
 
 
 @wp.func
-def skew_axial(M: wp.mat33):
-    """Axial vector w of the skew part of M, (M - M^T) / 2 = [w]_x."""
-    return 0.5 * wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
-
-
-@wp.func_grad(polar_rotation)
-def adj_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
-    # With F = R S and R^T dR = [w]_x: S [w]_x + [w]_x S = R^T dF - dF^T R, i.e. (tr(S) I - S) w =
-    # 2 axial(R^T dF). The adjoint is adj_F = 2 R [q]_x with q = (tr(S) I - S)^-1 axial(R^T adj_R).
-    # It divides by sums of singular values (never their differences, which vanish at F = I where every
-    # particle starts and make generic SVD adjoints blow up).
-    R = polar_rotation(F)
-    S = wp.transpose(R) * F
-    S = 0.5 * (S + wp.transpose(S))
-    G = wp.trace(S) * wp.identity(n=3, dtype=float) - S
-    if wp.abs(wp.determinant(G)) < 1.0e-12:
-        G = G + 1.0e-4 * wp.identity(n=3, dtype=float)
-    q = wp.inverse(G) * skew_axial(wp.transpose(R) * adj_ret)
-    Q = wp.mat33(0.0, -q[2], q[1], q[2], 0.0, -q[0], -q[1], q[0], 0.0)
-    wp.adjoint[F] += 2.0 * R * Q
-
-
-@wp.func
-def kirchhoff_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float, model: int):
-    """Kirchhoff stress tau = P F^T of the hyperelastic model (sim-unit moduli); R = polar rotation of F
-    (fixed corotated only; computed by the caller so the adjoint pass does not recompute it twice)."""
-    J = wp.determinant(F)
-    I = wp.identity(n=3, dtype=float)
-    if model == FIXED_COROTATED:
-        return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * I
-    # neo-Hookean: tau = mu (F F^T - I) + lambda ln J I. J is kept positive so an inverted particle pushes
-    # back instead of producing NaN.
-    return mu * (F * wp.transpose(F) - I) + lam * wp.log(wp.max(J, 1.0e-4)) * I
+def von_mises_return(F: wp.mat33, yield_stress: float, mu: float):
+    """Elastic part of F after von Mises plasticity: the deviatoric Hencky strain is projected onto the
+    cylinder of radius yield_stress / (2 mu) (F = F^E F^P; the plastic part is never needed for the stress)."""
+    U, s, V = proper_svd_rotations(F)
+    eps = wp.vec3(wp.log(wp.max(s[0], 1.0e-4)), wp.log(wp.max(s[1], 1.0e-4)), wp.log(wp.max(s[2], 1.0e-4)))
+    eps_dev = eps - wp.vec3((eps[0] + eps[1] + eps[2]) / 3.0)
+    norm_dev = wp.length(eps_dev)
+    excess = norm_dev - yield_stress / (2.0 * mu)
+    F_el = F
+    if excess > 0.0:
+        eps = eps - (excess / norm_dev) * eps_dev
+        S = wp.mat33(wp.exp(eps[0]), 0.0, 0.0, 0.0, wp.exp(eps[1]), 0.0, 0.0, 0.0, wp.exp(eps[2]))
+        F_el = U * S * wp.transpose(V)
+    return F_el
 
 
 @wp.kernel
@@ -138,10 +169,8 @@ def collider_to_grid(
     alpha: float,
     inv_frame_dt: float,
     radius: float,
-    inv_dx: float,
-    n: int,
-    col_w: wp.array3d(dtype=float),
-    col_mv: wp.array3d(dtype=wp.vec3),
+    domain: Domain,
+    col: ColliderGrid,
 ):
     """Mark grid nodes within ``radius`` of a collider point and accumulate the collider velocity there.
 
@@ -150,40 +179,27 @@ def collider_to_grid(
     c = wp.tid()
     x = col_x0[c] + alpha * (col_x1[c] - col_x0[c])
     v = (col_x1[c] - col_x0[c]) * inv_frame_dt
-    base = stencil_base(x, inv_dx, n)
-    dx = 1.0 / inv_dx
+    base = stencil_base(x, domain.inv_dx, domain.n)
+    dx = 1.0 / domain.inv_dx
     for i in range(3):
         for j in range(3):
             for k in range(3):
                 node = wp.vec3(float(base[0] + i), float(base[1] + j), float(base[2] + k)) * dx
                 if wp.length(node - x) <= radius:
-                    wp.atomic_add(col_w, base[0] + i, base[1] + j, base[2] + k, 1.0)
-                    wp.atomic_add(col_mv, base[0] + i, base[1] + j, base[2] + k, v)
+                    wp.atomic_add(col.w, base[0] + i, base[1] + j, base[2] + k, 1.0)
+                    wp.atomic_add(col.mv, base[0] + i, base[1] + j, base[2] + k, v)
 
 
 @wp.kernel
 def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    vol: wp.array(dtype=float),
-    obj: wp.array(dtype=wp.int32),
-    pinned: wp.array(dtype=wp.int32),
-    E_obj: wp.array(dtype=float),
-    nu_obj: wp.array(dtype=float),
-    rho_obj: wp.array(dtype=float),
-    force_region: wp.array(dtype=wp.int32),
-    force_acc: wp.array(dtype=wp.vec3),
-    force_t0: wp.array(dtype=float),
-    force_t1: wp.array(dtype=float),
+    state: ParticleState,
+    particles: ParticleModel,
+    mats: MaterialTable,
+    forces: ForceTable,
+    domain: Domain,
     t: float,
     dt: float,
-    inv_dx: float,
-    n: int,
-    model: int,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid: GridState,
 ):
     """Particle to grid: APIC momentum, mass and the elastic force (MLS-MPM).
 
@@ -193,38 +209,32 @@ def p2g(
     that makes the motion shrink with dt.
     """
     p = wp.tid()
-    o = obj[p]
-    E = E_obj[o]
-    nu = nu_obj[o]
-    mu = E / (2.0 * (1.0 + nu))
-    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    mass = rho_obj[o] * vol[p]
-    if pinned[p] != 0:
+    o = particles.obj[p]
+    ml = lame(mats.E[o], mats.nu[o])
+    vol = particles.vol[p]
+    mass = mats.rho[o] * vol
+    if particles.pinned[p] != 0:
         mass = 0.0
 
-    xp = x[p]
-    base = stencil_base(xp, inv_dx, n)
+    inv_dx = domain.inv_dx
+    xp = state.x[p]
+    base = stencil_base(xp, inv_dx, domain.n)
     fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
 
-    Fp = F[p]
-    R = wp.identity(n=3, dtype=float)
-    if model == FIXED_COROTATED:
-        R = polar_rotation(Fp)
-    tau = kirchhoff_stress(Fp, R, mu, lam, model)
-    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mass * C[p]
+    tau = kirchhoff_stress(mats.model[o], state.F[p], ml[0], ml[1])
+    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * state.C[p]
 
-    vp = v[p]
-    r = force_region[p]
+    vp = state.v[p]
+    r = particles.force_region[p]
     if r >= 0:
-        # An impulse is a velocity change over one substep (t1 < 0 marks it; its window is [t0, t0 + dt)).
-        t0 = force_t0[r]
-        t1 = force_t1[r]
+        t0 = forces.t0[r]
+        t1 = forces.t1[r]
         if t1 < 0.0:
             if t >= t0 and t < t0 + dt:
-                vp = vp + force_acc[r]
+                vp = vp + forces.acc[r]
         elif t >= t0 and t < t1:
-            vp = vp + dt * force_acc[r]
+            vp = vp + dt * forces.acc[r]
 
     # Node momentum w (m v + A (node - x)) with node - x = (ijk - fx) dx, split as
     # q + dx (i A_0 + j A_1 + k A_2): vector sums only, which keeps the unrolled adjoint small.
@@ -240,28 +250,20 @@ def p2g(
             wij = W[i, 0] * W[j, 1]
             for k in range(3):
                 w = wij * W[k, 2]
-                wp.atomic_add(grid_mv, base[0] + i, base[1] + j, base[2] + k, w * (qij + float(k) * a2))
-                wp.atomic_add(grid_m, base[0] + i, base[1] + j, base[2] + k, w * mass)
+                wp.atomic_add(grid.mv, base[0] + i, base[1] + j, base[2] + k, w * (qij + float(k) * a2))
+                wp.atomic_add(grid.m, base[0] + i, base[1] + j, base[2] + k, w * mass)
 
 
 @wp.kernel
 def grid_update(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    col_w: wp.array3d(dtype=float),
-    col_mv: wp.array3d(dtype=wp.vec3),
+    grid: GridState,
+    col: ColliderGrid,
     has_colliders: int,
-    bc_kind: wp.array3d(dtype=wp.int32),
-    bc_normal: wp.array3d(dtype=wp.vec3),
-    gravity: wp.vec3,
+    domain: Domain,
     dt: float,
     damping_factor: float,
     v_max: float,
-    n: int,
-    pad: int,
-    sticky_walls: int,
     offset: wp.vec3i,
-    grid_v: wp.array3d(dtype=wp.vec3),
 ):
     """Grid momentum -> velocity with gravity, damping, colliders, anchors and domain walls.
 
@@ -272,30 +274,32 @@ def grid_update(
     i = ti + offset[0]
     j = tj + offset[1]
     k = tk + offset[2]
-    m = grid_m[i, j, k]
+    m = grid.m[i, j, k]
     v = wp.vec3(0.0)
     if m > 1.0e-12:
-        v = (grid_mv[i, j, k] / m + dt * gravity) * damping_factor
+        v = (grid.mv[i, j, k] / m + dt * domain.gravity) * damping_factor
 
     if has_colliders != 0:
-        cw = col_w[i, j, k]
+        cw = col.w[i, j, k]
         if cw > 0.0:
-            v = col_mv[i, j, k] / cw
+            v = col.mv[i, j, k] / cw
 
-    kind = bc_kind[i, j, k]
+    kind = domain.bc_kind[i, j, k]
     if kind == BC_STICKY:
         v = wp.vec3(0.0)
     elif kind == BC_SLIP:
-        nrm = bc_normal[i, j, k]
+        nrm = domain.bc_normal[i, j, k]
         v = v - wp.dot(v, nrm) * nrm
 
     # Domain walls: nodes within `pad` cells of a face. Slip walls only stop motion through the wall.
     idx = wp.vec3i(i, j, k)
+    n = domain.n
+    pad = domain.pad
     for a in range(3):
         low = idx[a] < pad
         high = idx[a] >= n - pad
         if low or high:
-            if sticky_walls != 0:
+            if domain.sticky_walls != 0:
                 v = wp.vec3(0.0)
             elif (low and v[a] < 0.0) or (high and v[a] > 0.0):
                 if a == 0:
@@ -309,36 +313,26 @@ def grid_update(
     speed = wp.length(v)
     if speed > v_max:
         v = v * (v_max / speed)
-    grid_v[i, j, k] = v
+    grid.v[i, j, k] = v
 
 
 @wp.kernel
 def g2p(
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    obj: wp.array(dtype=wp.int32),
-    pinned: wp.array(dtype=wp.int32),
-    E_obj: wp.array(dtype=float),
-    nu_obj: wp.array(dtype=float),
-    grid_v: wp.array3d(dtype=wp.vec3),
+    state: ParticleState,
+    particles: ParticleModel,
+    mats: MaterialTable,
+    domain: Domain,
+    grid: GridState,
     dt: float,
-    inv_dx: float,
-    n: int,
-    x_lo: float,
-    x_hi: float,
-    yield_stress: float,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
+    out: ParticleState,
 ):
     """Grid to particle: velocity, APIC affine matrix, F update with optional von Mises plasticity, advection."""
     p = wp.tid()
-    xp = x[p]
-    base = stencil_base(xp, inv_dx, n)
+    inv_dx = domain.inv_dx
+    xp = state.x[p]
+    base = stencil_base(xp, inv_dx, domain.n)
     fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
-    dx = 1.0 / inv_dx
 
     # C = 4 / dx^2 sum w v (node - x)^T with node - x = (ijk - fx) dx: accumulate sum w v i, sum w v j,
     # sum w v k as vectors (cheaper, and a much smaller unrolled adjoint than 27 outer products).
@@ -350,41 +344,32 @@ def g2p(
         for j in range(3):
             wij = W[i, 0] * W[j, 1]
             for k in range(3):
-                wv = (wij * W[k, 2]) * grid_v[base[0] + i, base[1] + j, base[2] + k]
+                wv = (wij * W[k, 2]) * grid.v[base[0] + i, base[1] + j, base[2] + k]
                 new_v = new_v + wv
                 si = si + float(i) * wv
                 sj = sj + float(j) * wv
                 sk = sk + float(k) * wv
     new_C = (4.0 * inv_dx) * (wp.matrix_from_cols(si, sj, sk) - wp.outer(new_v, fx))
 
-    F_new = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
-
+    F_new = (wp.identity(n=3, dtype=float) + dt * new_C) * state.F[p]
+    o = particles.obj[p]
+    yield_stress = mats.yield_stress[o]
     if yield_stress > 0.0:
-        # Return mapping on the Hencky strain: project its deviatoric part onto the von Mises cylinder;
-        # F keeps only the elastic part F^E (the plastic part is never needed for the stress).
-        o = obj[p]
-        mu = E_obj[o] / (2.0 * (1.0 + nu_obj[o]))
-        U, s, V = proper_svd_rotations(F_new)
-        eps = wp.vec3(wp.log(wp.max(s[0], 1.0e-4)), wp.log(wp.max(s[1], 1.0e-4)), wp.log(wp.max(s[2], 1.0e-4)))
-        eps_dev = eps - wp.vec3((eps[0] + eps[1] + eps[2]) / 3.0)
-        norm_dev = wp.length(eps_dev)
-        excess = norm_dev - yield_stress / (2.0 * mu)
-        if excess > 0.0:
-            eps = eps - (excess / norm_dev) * eps_dev
-            S = wp.mat33(wp.exp(eps[0]), 0.0, 0.0, 0.0, wp.exp(eps[1]), 0.0, 0.0, 0.0, wp.exp(eps[2]))
-            F_new = U * S * wp.transpose(V)
+        F_new = von_mises_return(F_new, yield_stress, lame(mats.E[o], mats.nu[o])[0])
 
     x_new = xp + dt * new_v
-    if pinned[p] != 0:
+    if particles.pinned[p] != 0:
         x_new = xp
         new_v = wp.vec3(0.0)
     # Keep every particle inside the padded box (its stencil then always lies inside the grid).
+    x_lo = domain.x_lo
+    x_hi = domain.x_hi
     x_new = wp.vec3(wp.clamp(x_new[0], x_lo, x_hi), wp.clamp(x_new[1], x_lo, x_hi), wp.clamp(x_new[2], x_lo, x_hi))
 
-    x_out[p] = x_new
-    v_out[p] = new_v
-    C_out[p] = new_C
-    F_out[p] = F_new
+    out.x[p] = x_new
+    out.v[p] = new_v
+    out.C[p] = new_C
+    out.F[p] = F_new
 
 
 @wp.kernel

@@ -24,6 +24,7 @@ from endogsim.errors import ModelError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, sh_degree_from_count
 from endogsim.gaussians.sh import sh_basis
+from endogsim.physics.polar import polar_rotation_torch
 
 
 @dataclass
@@ -204,15 +205,6 @@ def bind_gaussians(gaussian_means: torch.Tensor, gaussian_object_ids: torch.Tens
                            particles.x.detach().clone())
 
 
-def polar_rotation(F: torch.Tensor) -> torch.Tensor:
-    """[N, 3, 3] rotation of the polar decomposition F = R S (proper: det R = +1)."""
-    U, _, Vh = torch.linalg.svd(F)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    D = torch.ones(F.shape[:-1], dtype=F.dtype, device=F.device)
-    D[..., -1] = d
-    return (U * D[..., None, :]) @ Vh
-
-
 _SH_DIRS_CACHE: dict[int, torch.Tensor] = {}
 
 
@@ -287,7 +279,7 @@ def drive_gaussians(
     sh = gaussians.sh
     if rotate_colors and gaussians.sh_degree > 0:
         with torch.no_grad():
-            sh = rotate_sh(gaussians.sh, polar_rotation(Fg.detach().double()).to(gaussians.sh.dtype))
+            sh = rotate_sh(gaussians.sh, polar_rotation_torch(Fg.detach().double()).to(gaussians.sh.dtype))
     return means, covs, sh
 
 

@@ -1,8 +1,9 @@
 """A pure-PyTorch MLS-MPM reference solver for the Warp simulator (gsplat style: a slow, readable
 reference beside the fast path).
 
-Same physics as :mod:`endogsim.physics` (quadratic B-splines, APIC/MLS transfer, fixed corotated
-elasticity, sticky kinematic capsule colliders, anchored particles, gravity, closed box walls), written in
+Same physics as :mod:`endogsim.physics` (quadratic B-splines, APIC/MLS transfer, every registered
+constitutive model through its PyTorch twin, per particle; sticky kinematic capsule colliders, anchored
+particles, gravity, closed box walls), written in
 plain vectorised float64 PyTorch, forward only, no compile step. It exists to check the Warp kernels
 (tests/test_physics.py); nothing in the pipeline runs it.
 
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from endogsim.errors import SimulationError
-from endogsim.physics.particles import polar_rotation
+from endogsim.physics.constitutive import model_id, stress_torch
 
 __all__ = ["Capsule", "MPMProblem", "MPMResult", "run_mpm"]
 
@@ -51,6 +52,8 @@ class MPMProblem:
         grid: cells per edge. dt: substep (s). substeps: substeps per rendered frame.
         gravity: [3] m/s^2 (world). tools: kinematic colliders.
         damping: grid velocity decay rate (1/s), a simple model of tissue viscosity.
+        model: [P] constitutive model id per particle (:func:`endogsim.physics.constitutive.model_id`);
+            default fixed corotated for all.
     """
 
     x: np.ndarray
@@ -68,6 +71,7 @@ class MPMProblem:
     gravity: np.ndarray
     tools: list[Capsule] = field(default_factory=list)
     damping: float = 0.0
+    model: np.ndarray | None = None
 
 
 @dataclass
@@ -125,6 +129,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
     vol = torch.tensor(p.vol, dtype=dtype)
     mass = vol * torch.tensor(p.density, dtype=dtype)
     mu, lam = torch.tensor(p.mu, dtype=dtype), torch.tensor(p.lam, dtype=dtype)
+    model = torch.full((P,), model_id("fixed_corotated")) if p.model is None else torch.as_tensor(p.model).long()
     anchored = torch.tensor(p.anchored, dtype=torch.bool)
     g = torch.tensor(p.gravity, dtype=dtype)
 
@@ -159,9 +164,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             xg = x * inv_dx
             base, w, dpos = _weights(xg)
             idx = _flat_index(base, n1)
-            J = torch.linalg.det(F)
-            R = polar_rotation(F)
-            stress = 2 * mu[:, None, None] * (F - R) @ F.mT + (lam * (J - 1) * J)[:, None, None] * torch.eye(3, dtype=dtype)
+            stress = stress_torch(model, F, mu, lam)
             stress = -dt * 4 * inv_dx * inv_dx * vol[:, None, None] * stress
             affine = stress + mass_free[:, None, None] * C
             mom = mass_free[:, None, None] * v[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)

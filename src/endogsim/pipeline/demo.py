@@ -55,7 +55,7 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import PipelineConfig, run_pipeline
     from endogsim.synth import synthesize
-    from endogsim.synth.spec import load_scene_truth
+    from endogsim.scene.schema import load_scene_spec
 
     out = Path(out)
     t0 = time.perf_counter()
@@ -64,16 +64,16 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
         if on_stage:
             on_stage("synthesize", "start")
         synthesize(cfg.scene, truth_dir, seed=cfg.seed, frames=cfg.frames)
-        from endogsim.identify.problem import read_observations
+        from endogsim.scene.folder import read_observations
 
-        truth = load_scene_truth(truth_dir)
+        truth = load_scene_spec(truth_dir)
         frames, *_ = read_observations(truth_dir, truth, truth.frames)
         # Slow motion: the simulated clip spans a fraction of a second.
         write_video(frames, out / "render.mp4", fps=min(10.0, 1.0 / truth.scenario.frame_dt))
         write_frames_png(frames, out / "frames")
         if on_stage:
             on_stage("synthesize", "done")
-    truth = load_scene_truth(truth_dir)
+    truth = load_scene_spec(truth_dir)
     state = run_pipeline(truth_dir, out / "run",
                          PipelineConfig(materials_backend="prior", recon=cfg.recon, identify=cfg.identify,
                                         interaction=cfg.interaction, tool_motion=cfg.tool_motion),

@@ -130,7 +130,7 @@ def scene_from_reconstruction(
     from endogsim.io.images import resize_frames
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
     from endogsim.recon.model import load_reconstruction
-    from endogsim.synth.spec import load_scene_truth
+    from endogsim.scene.schema import load_scene_spec
 
     recon_run, data, out = Path(recon_run), Path(data), Path(out)
     if tool_motion not in ("reconstructed", "truth"):
@@ -155,7 +155,7 @@ def scene_from_reconstruction(
     if scene.object_masks is not None:
         masks = resize_frames(scene.object_masks[:T].astype(np.int32), (cam.width, cam.height), nearest=True)
 
-    gt = load_scene_truth(truth) if truth is not None else None
+    gt = load_scene_spec(truth) if truth is not None else None
     if gt is not None and (gt.camera.width, gt.camera.height) != (cam.width, cam.height):
         raise DataError(f"{truth}: ground truth is {gt.camera.width}x{gt.camera.height} but the reconstruction is "
                         f"{cam.width}x{cam.height}; reconstruct with --resolution-scale 1 for the benchmark")

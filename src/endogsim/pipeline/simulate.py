@@ -224,12 +224,12 @@ def _object_id(problem, ref: str | int | None, deformable: bool) -> int | None:
     if ref is None:
         return None
     try:
-        o = problem.truth.object(ref)
+        o = problem.spec.object(ref)
     except DataError:
         o = None
     if o is None or o.rigid == deformable:
-        kinds = [f"{x.name} ({x.id})" for x in problem.truth.objects if x.rigid != deformable]
-        raise DataError(f"scene {problem.truth.name!r} has no {'deformable object' if deformable else 'tool'} "
+        kinds = [f"{x.name} ({x.id})" for x in problem.spec.objects if x.rigid != deformable]
+        raise DataError(f"scene {problem.spec.name!r} has no {'deformable object' if deformable else 'tool'} "
                         f"{ref!r}; choose one of {', '.join(kinds) or 'none'}")
     return o.id
 
@@ -245,20 +245,14 @@ def surface_point(problem, loc: _Located) -> np.ndarray:
     u, v = loc.at if loc.at is not None else (0.0, 0.0)
     lo, hi = x[:, :2].min(0), x[:, :2].max(0)
     target = 0.5 * (lo + hi) + np.array([u, v]) * 0.5 * (hi - lo)
-    spacing = float(problem.truth.scenario.particle_spacing)
+    spacing = float(problem.spec.scenario.particle_spacing)
     near = np.linalg.norm(x[:, :2] - target, axis=1) <= 1.5 * spacing
     if not near.any():
-        raise DataError(f"at = [{u}, {v}] lies off the tissue of scene {problem.truth.name!r} (no particle within "
+        raise DataError(f"at = [{u}, {v}] lies off the tissue of scene {problem.spec.name!r} (no particle within "
                         f"{1.5 * spacing * 1e3:.1f} mm of the image-plane point)")
     cam = problem.camera.center().double().numpy()
     cand = x[near]
     return cand[np.argmin(np.linalg.norm(cand - cam, axis=1))]
-
-
-def _translations(offsets: np.ndarray) -> torch.Tensor:
-    tf = np.tile(np.eye(4), (len(offsets), 1, 1))
-    tf[:, :3, 3] = offsets
-    return torch.as_tensor(tf, dtype=torch.float64)
 
 
 def build_interaction(problem, inter: Interaction):
@@ -269,11 +263,11 @@ def build_interaction(problem, inter: Interaction):
     """
     from endogsim.physics import capsule_collider_points
     from endogsim.physics import ExternalForce, RigidCollider
-    from endogsim.synth.scenes import tool_offsets
+    from endogsim.scene.motion import tool_offsets, translations
 
     T = inter.frames
     dx = problem.scenario.box.size / problem.mpm.grid_res
-    tools = {t.object_id: t for t in problem.truth.scenario.tools}
+    tools = {t.object_id: t for t in problem.spec.scenario.tools}
     info: dict = {}
     driven: dict[int, np.ndarray] = {}  # tool id -> [T, 3] translation
     cam_dir = lambda p: p / max(np.linalg.norm(p), 1e-12)  # noqa: E731 - camera at the origin looking at p
@@ -282,10 +276,10 @@ def build_interaction(problem, inter: Interaction):
         tid = _object_id(problem, ref, deformable=False)
         if tid is None:
             if not tools:
-                raise DataError(f"scene {problem.truth.name!r} has no tool to move")
+                raise DataError(f"scene {problem.spec.name!r} has no tool to move")
             tid = next(iter(tools))
         if tid not in tools:
-            raise DataError(f"object {tid} of scene {problem.truth.name!r} is rigid but has no tool capsule")
+            raise DataError(f"object {tid} of scene {problem.spec.name!r} is rigid but has no tool capsule")
         return tid
 
     def touch_offset(tid: int, p: np.ndarray) -> np.ndarray:
@@ -308,7 +302,7 @@ def build_interaction(problem, inter: Interaction):
         info["grasp_point"] = p.tolist()
         off = tool_offsets([list(k) for k in inter.grasp.keyframes], T)
         pts, rad = capsule_collider_points(p, p, inter.grasp.radius, dx)
-        grasp_collider = RigidCollider(points=torch.as_tensor(pts), transforms=_translations(off), radius=rad)
+        grasp_collider = RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(translations(off)), radius=rad)
         if inter.grasp.with_tool and tools:
             tid = first_tool(None)
             if tid in driven:
@@ -318,9 +312,9 @@ def build_interaction(problem, inter: Interaction):
     colliders, tool_tf, hidden = [], {}, []
     for tid, t in tools.items():
         if tid in driven:
-            tf = _translations(driven[tid])
+            tf = torch.as_tensor(translations(driven[tid]))
         elif inter.scene_tool == "static":
-            tf = _translations(np.zeros((T, 3)))
+            tf = torch.as_tensor(translations(np.zeros((T, 3))))
         else:
             hidden.append(tid)
             continue
@@ -371,15 +365,15 @@ def _materials(problem, materials: str | Path | MaterialField | None, default: P
         fld = materials
     elif str(materials) == "truth":
         fld = MaterialField([MaterialRecord(name=o.name, object_id=o.id, klass=o.klass, rigid=o.rigid,
-                                            model="rigid" if o.rigid else "fixed_corotated", E=o.E, nu=o.nu,
+                                            model="rigid" if o.rigid else o.model, E=o.E, nu=o.nu,
                                             density=o.density, source="ground truth")
-                             for o in problem.truth.objects])
+                             for o in problem.spec.objects])
     elif str(materials) in INIT_CHOICES:
         fld, _ = initial_field(problem, str(materials))
     else:
         fld = MaterialField.load(materials)
     have = {r.object_id for r in fld.records}
-    missing = [f"{problem.truth.object(i).name} ({i})" for i in problem.deformable_ids if i not in have]
+    missing = [f"{problem.spec.object(i).name} ({i})" for i in problem.deformable_ids if i not in have]
     if missing:
         raise MaterialError(f"the materials have no record for deformable object(s) {', '.join(missing)}")
     return fld
@@ -414,24 +408,23 @@ def simulate_interaction(
         diverged simulation).
     """
     from endogsim.gaussians.ply import write_ply
-    from endogsim.identify.forward import frame_gaussians, material_tables, render_sequence
-    from endogsim.identify.problem import load_problem
+    from endogsim.scene.forward import frame_gaussians, render_sequence
+    from endogsim.scene.folder import load_sim_scene
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.physics import simulate
 
     out = Path(out)
     inter = load_interaction(interaction)
     folder, default_mats = resolve_scene(scene)
-    base = load_problem(folder, device=device)
+    base = load_sim_scene(folder, device=device)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
     T = inter.frames
 
-    log10_E, nu, rho = material_tables(fld)
     t0 = time.perf_counter()
     try:
         with torch.no_grad():
-            res = simulate(problem.particles, torch.pow(10.0, log10_E), nu, rho, problem.scenario, problem.mpm, T)
+            res = simulate(problem.particles, fld.simulator_materials(), problem.scenario, problem.mpm, T)
     except SimulationError as exc:
         raise SimulationError(f"interaction {inter.name!r} on {folder}: {exc}") from None
     if not (torch.isfinite(res.positions).all() and torch.isfinite(res.F).all()):
@@ -469,14 +462,14 @@ def simulate_interaction(
     displacement = {}
     for oid in problem.deformable_ids:
         d = disp[:, ids == oid]
-        displacement[problem.truth.object(oid).name] = {
+        displacement[problem.spec.object(oid).name] = {
             "max_mm": float(d.max()) * 1e3, "mean_last_mm": float(d[-1].mean()) * 1e3,
             "max_last_mm": float(d[-1].max()) * 1e3}
     inter_json = inter.model_dump(mode="json")
     write_json_atomic(out / "interaction.json", inter_json)
     fld.save(out / "materials.json")
     summary = {
-        "scene": problem.truth.name, "scene_folder": str(folder), "interaction": inter_json, "resolved": info,
+        "scene": problem.spec.name, "scene_folder": str(folder), "interaction": inter_json, "resolved": info,
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density,
                                "rigid": r.rigid, "source": r.source} for r in fld.records},
         "frames": T, "frame_dt": problem.mpm.frame_dt, "substeps": res.substeps, "dt": res.dt,

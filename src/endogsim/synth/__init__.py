@@ -1,7 +1,7 @@
 """Benchmark scenes with ground-truth materials (DESIGN.md section 8).
 
 * :func:`synthesize` (``endogsim synth``): build, simulate and write one scene folder.
-* :func:`load_scene_truth`: read its ``scene.json`` (objects, scenario, camera, seed) into typed records.
+* :func:`load_scene_spec`: read its ``scene.json`` (objects, scenario, camera, seed) into typed records.
 * :mod:`endogsim.synth.procedural`: reusable geometry / texture builders (tissue surfaces, tools).
 * Ground-truth videos are simulated by :mod:`endogsim.physics` (the Warp MLS-MPM identification also uses)
   at the suite's ``ground_truth`` discretisation (by default identification's, as in the paper; it can be
@@ -9,7 +9,8 @@
 * :func:`dis_epe_table`: EPE of an optical-flow estimator against the ground-truth flow of scene folders.
 """
 
-from endogsim.synth.spec import SceneTruth, load_scene_truth, load_suite, scene_spec, suite_scene_names
+from endogsim.scene.schema import SceneSpec, load_scene_spec
+from endogsim.synth.suite import load_suite, scene_spec, suite_scene_names
 
 
 def synthesize(*args, **kwargs):
@@ -26,5 +27,5 @@ def dis_epe_table(*args, **kwargs):
     return _f(*args, **kwargs)
 
 
-__all__ = ["synthesize", "load_scene_truth", "SceneTruth", "load_suite", "scene_spec", "suite_scene_names",
+__all__ = ["synthesize", "load_scene_spec", "SceneSpec", "load_suite", "scene_spec", "suite_scene_names",
            "dis_epe_table"]

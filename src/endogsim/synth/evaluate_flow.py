@@ -87,7 +87,7 @@ def dis_epe_table(*args, **kwargs) -> list[dict]:
 
 
 def main() -> None:  # pragma: no cover - script
-    from endogsim.synth.spec import suite_scene_names
+    from endogsim.synth.suite import suite_scene_names
 
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenes", nargs="*", default=suite_scene_names())

@@ -30,8 +30,10 @@ from endogsim.materials.prior import prior_entry
 from endogsim.priors.depth import fallback_depth
 from endogsim.synth import procedural as proc
 from endogsim.physics import MPMConfig, max_stable_E
-from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface, tool_offsets, tool_truth
-from endogsim.synth.spec import ObjectTruth, load_suite
+from endogsim.scene.motion import tool_capsule, tool_offsets
+from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface
+from endogsim.scene.schema import SceneObject
+from endogsim.synth.suite import load_suite
 
 __all__ = ["build_from_data", "CHOLECSEG_CLASSES", "read_first_frame"]
 
@@ -122,7 +124,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     # Ground-truth materials: the class prior, E perturbed by a factor in [1/1.5, 1.5]; nu capped at 0.45
     # (near-incompressible values would need far smaller substeps, DESIGN.md section 4) minus up to 0.04.
     ident = load_suite()["defaults"]
-    objects: list[ObjectTruth] = []
+    objects: list[SceneObject] = []
     mat_sources = set()
     for cid in present:
         nm, klass, is_tool = labels[cid]
@@ -132,7 +134,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
             rng = np.random.default_rng([seed, cid])
             E = E * 1.5 ** rng.uniform(-1, 1)
             nu = float(min(nu, 0.45) - rng.uniform(0.0, 0.04))
-        objects.append(ObjectTruth(id=int(cid), name=nm, klass=klass, rigid=is_tool, E=float(E), nu=nu, density=rho))
+        objects.append(SceneObject(id=int(cid), name=nm, klass=klass, rigid=is_tool, E=float(E), nu=nu, density=rho))
 
     # Back-project every pixel: one flat Gaussian per pixel, facing the camera.
     ys, xs = np.mgrid[0:H, 0:W]
@@ -193,12 +195,12 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     tool_obj_id = max(o.id for o in objects) + 1 if 31 in tool_ids or 32 in tool_ids else 31
     if tool_obj_id in {o.id for o in objects}:
         tool_obj_id = max(o.id for o in objects) + 1
-    objects.append(ObjectTruth(id=tool_obj_id, name="synthetic_tool", klass="instrument", rigid=True,
+    objects.append(SceneObject(id=tool_obj_id, name="synthetic_tool", klass="instrument", rigid=True,
                                E=2.0e11, nu=0.3, density=7850.0))
     tool_g = proc.tool_gaussians(tip, end, radius, 0.6 * float(np.median(foot)) * 2, tool_obj_id, seed=seed,
                                  jaw=interaction == "pull")
     offsets = tool_offsets(kf, T)
-    tool = tool_truth(tool_obj_id, tip, end, radius, offsets)
+    tool = tool_capsule(tool_obj_id, tip, end, radius, offsets)
 
     # Cubic sim box around the particles and the tool's path through the tissue.
     tissue_pts = np.concatenate([cat["x"], pts[~np.isin(ids, list(tool_ids))]])

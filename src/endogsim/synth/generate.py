@@ -10,7 +10,7 @@ Folder written by :func:`synthesize` (T frames, H x W pixels, names as in EndoNe
   poses_bounds.npy                  (T, 17) LLFF: identity pose, [H, W, focal], near, far (metres)
   gaussians_t0.ply                  ground-truth Gaussians of frame 0 with object ids
   particles_t0.npz                  MPM particles: x [P, 3] m, object_id [P], vol [P] m^3, anchored [P]
-  scene.json                        objects, scenario, camera, seed (see endogsim.synth.spec)
+  scene.json                        objects, scenario, camera, seed (see endogsim.scene.schema)
 
 The ground truth is simulated by the Warp MLS-MPM of :mod:`endogsim.physics` -- the same simulator
 identification differentiates -- at the scene's ``ground_truth`` discretisation (both it and
@@ -40,6 +40,7 @@ from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
     Anchor,
     MPMConfig,
+    ObjectMaterials,
     Particles,
     RigidCollider,
     Scenario,
@@ -49,7 +50,8 @@ from endogsim.physics import (
     simulate,
 )
 from endogsim.synth.scenes import BuiltScene, build_procedural
-from endogsim.synth.spec import CameraTruth, ScenarioTruth, SceneTruth
+from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
+from endogsim.synth.suite import GENERATOR_REVISION
 
 __all__ = ["synthesize", "ground_truth_problem", "simulate_built", "render_built", "write_scene_folder", "DEPTH_SCALE"]
 
@@ -61,11 +63,12 @@ def _wall_cells(b: BuiltScene) -> int:
     return next((int(bc.get("cells", 2)) for bc in b.boundary_conditions if bc.get("type") == "box_walls"), 2)
 
 
-def ground_truth_problem(b: BuiltScene) -> tuple[Particles, torch.Tensor, torch.Tensor, torch.Tensor, Scenario, MPMConfig]:
+def ground_truth_problem(b: BuiltScene) -> tuple[Particles, ObjectMaterials, Scenario, MPMConfig]:
     """The ground-truth simulation of a built scene for :func:`endogsim.physics.simulate`.
 
-    Returns particles, per-object-id E [M] (Pa), nu [M], density [M] (kg/m^3), the scenario (sim box,
-    gravity, anchored particles, capsule tools as point colliders) and the ``ground_truth`` numerics.
+    Returns particles, the per-object ground-truth materials (E Pa, nu, density kg/m^3, constitutive model),
+    the scenario (sim box, gravity, anchored particles, capsule tools as point colliders) and the
+    ``ground_truth`` numerics.
     """
     from endogsim.physics import capsule_collider_points  # the same covering as identification
 
@@ -74,9 +77,12 @@ def ground_truth_problem(b: BuiltScene) -> tuple[Particles, torch.Tensor, torch.
                           torch.as_tensor(b.particle_vol, dtype=torch.float32),
                           torch.as_tensor(b.particle_ids, dtype=torch.int64))
     M = max(o.id for o in b.objects) + 1
-    E, nu, rho = torch.ones(M, dtype=torch.float64), torch.zeros(M, dtype=torch.float64), torch.ones(M, dtype=torch.float64)
+    E, nu, rho, model = [1.0] * M, [0.0] * M, [1.0] * M, ["fixed_corotated"] * M
     for o in b.objects:
         E[o.id], nu[o.id], rho[o.id] = o.E, o.nu, o.density
+        if not o.rigid:
+            model[o.id] = o.model
+    materials = ObjectMaterials.of(E, nu, rho, model)
     colliders = []
     for tool in b.tools:
         pts, radius = capsule_collider_points(tool.tip, tool.end, tool.radius, b.box_size / gt.grid)
@@ -86,9 +92,8 @@ def ground_truth_problem(b: BuiltScene) -> tuple[Particles, torch.Tensor, torch.
     scenario = Scenario(SimBox(tuple(float(v) for v in b.box_lo), float(b.box_size)),
                         gravity=tuple(float(v) for v in b.gravity), anchors=anchors, colliders=colliders)
     config = MPMConfig(grid_res=gt.grid, frame_dt=b.frame_dt, substeps_per_frame=gt.substeps, dt=gt.dt,
-                       damping=b.damping, wall="sticky", wall_padding=max(2, _wall_cells(b)),
-                       material_model="fixed_corotated")
-    return particles, E, nu, rho, scenario, config
+                       damping=b.damping, wall="sticky", wall_padding=max(2, _wall_cells(b)))
+    return particles, materials, scenario, config
 
 
 def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor]:
@@ -96,8 +101,8 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor]:
 
     Returns tissue means [T, Gt, 3] (metres) and covariances [T, Gt, 3, 3] (metres^2) = F Sigma_0 F^T.
     """
-    particles, E, nu, rho, scenario, config = ground_truth_problem(b)
-    res = simulate(particles, E, nu, rho, scenario, config, b.frames)
+    particles, materials, scenario, config = ground_truth_problem(b)
+    res = simulate(particles, materials, scenario, config, b.frames)
     if res.substeps != b.ground_truth.substeps:  # plan_substeps saw the same inputs when the scene was built
         raise SimulationError(f"scene {b.name}: the simulator took {res.substeps} substeps per frame, "
                               f"scene.json records {b.ground_truth.substeps}")
@@ -161,18 +166,18 @@ def render_built(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, progress: 
     return {k: np.stack(v) if v else np.zeros((0,)) for k, v in out.items()}
 
 
-def _scene_truth(b: BuiltScene, seed: int) -> SceneTruth:
-    scenario = ScenarioTruth(
+def _scene_spec(b: BuiltScene, seed: int) -> SceneSpec:
+    scenario = ScenarioSpec(
         box_lo=[float(v) for v in b.box_lo], box_size=float(b.box_size), gravity=[float(v) for v in b.gravity],
         frame_dt=float(b.frame_dt), damping=float(b.damping), boundary_conditions=b.boundary_conditions,
         tools=list(b.tools), particle_spacing=float(b.particle_spacing), extrusion=b.extrusion,
         ground_truth=b.ground_truth, identification=b.identification,
     )
-    cam = CameraTruth(K=b.camera.K.double().tolist(), width=b.camera.width, height=b.camera.height,
+    cam = CameraSpec(K=b.camera.K.double().tolist(), width=b.camera.width, height=b.camera.height,
                       viewmat=b.camera.viewmat.double().tolist())
-    return SceneTruth(
+    return SceneSpec(
         name=b.name, seed=seed, frames=b.frames, objects=b.objects, scenario=scenario, camera=cam,
-        depth_scale=DEPTH_SCALE, source=b.source,
+        depth_scale=DEPTH_SCALE, source=b.source, generator=GENERATOR_REVISION,
         files={"images": "images/frame-%06d.color.png", "depth": "depth/frame-%06d.depth.png",
                "masks": "masks/frame-%06d.mask.png", "object_masks": "object_masks/frame-%06d.png",
                "flow": "flow/frame-%06d.flow.npy", "flow_valid": "flow/frame-%06d.valid.png",
@@ -214,8 +219,7 @@ def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path
         write_ply(b.gaussians, tmp / "gaussians_t0.ply")
         np.savez(tmp / "particles_t0.npz", x=b.particles.astype(np.float64), object_id=b.particle_ids,
                  vol=b.particle_vol, anchored=b.anchored)
-        truth = _scene_truth(b, seed)
-        d = truth.to_json()
+        d = _scene_spec(b, seed).to_json()
         d.update({k: v for k, v in b.extra.items() if k not in d})
         write_json_atomic(tmp / "scene.json", d)
     return out_dir

@@ -26,9 +26,11 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.physics import MPMConfig, extrude_along_rays, p_wave_speed, plan_substeps
 from endogsim.synth import procedural as proc
-from endogsim.synth.spec import ObjectTruth, SimSettings, ToolTruth, scene_spec
+from endogsim.scene.motion import tool_capsule, tool_offsets, tool_speed
+from endogsim.scene.schema import SceneObject, SimSettings, ToolCapsule
+from endogsim.synth.suite import scene_spec
 
-__all__ = ["BuiltScene", "build_procedural", "tool_offsets", "tool_truth", "sim_settings", "tissue_from_surface"]
+__all__ = ["BuiltScene", "build_procedural", "sim_settings", "tissue_from_surface"]
 
 
 @dataclass
@@ -59,8 +61,8 @@ class BuiltScene:
     particle_ids: np.ndarray
     particle_vol: np.ndarray
     anchored: np.ndarray
-    objects: list[ObjectTruth]
-    tools: list[ToolTruth]
+    objects: list[SceneObject]
+    tools: list[ToolCapsule]
     box_lo: np.ndarray
     box_size: float
     gravity: np.ndarray
@@ -74,49 +76,7 @@ class BuiltScene:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def _smoothstep(s: np.ndarray) -> np.ndarray:
-    return s * s * (3 - 2 * s)
-
-
-def tool_offsets(keyframes: list[list[float]], frames: int) -> np.ndarray:
-    """Tool translation [frames, 3] (metres) from keyframes [[fraction of the sequence, dx, dy, dz], ...],
-    eased in and out between keyframes so the tool starts and stops smoothly."""
-    kf = np.asarray(keyframes, dtype=np.float64)
-    if kf.ndim != 2 or kf.shape[1] != 4 or kf[0, 0] != 0.0 or np.any(np.diff(kf[:, 0]) <= 0):
-        raise DataError(f"tool keyframes must be [[0, dx, dy, dz], [f1, ...], ...] with increasing fractions, got {keyframes}")
-    s = np.linspace(0, 1, frames) if frames > 1 else np.zeros(1)
-    out = np.zeros((frames, 3))
-    for i, si in enumerate(s):
-        j = min(np.searchsorted(kf[:, 0], si, side="right") - 1, len(kf) - 1)
-        if j == len(kf) - 1:
-            out[i] = kf[-1, 1:]
-            continue
-        a = (si - kf[j, 0]) / (kf[j + 1, 0] - kf[j, 0])
-        out[i] = kf[j, 1:] + _smoothstep(a) * (kf[j + 1, 1:] - kf[j, 1:])
-    return out
-
-
-def tool_truth(object_id: int, tip, end, radius: float, offsets: np.ndarray) -> ToolTruth:
-    """A capsule tool (``tip``/``end`` [3] metres at frame 0, ``radius`` metres) translated by ``offsets`` [T, 3]."""
-    tf = np.tile(np.eye(4), (len(offsets), 1, 1))
-    tf[:, :3, 3] = offsets
-    return ToolTruth(object_id=int(object_id), tip=[float(v) for v in tip], end=[float(v) for v in end],
-                     radius=float(radius), transforms=tf.tolist())
-
-
-def tool_speed(tools: list[ToolTruth], frame_dt: float) -> float:
-    """Largest speed (m/s) of any capsule end point between two frames (the CFL rule needs it)."""
-    speed = 0.0
-    for tool in tools:
-        tf = tool.matrices()
-        ends = np.array([tool.tip, tool.end], float)
-        pos = np.einsum("tij,pj->tpi", tf[:, :3, :3], ends) + tf[:, None, :3, 3]
-        if len(pos) > 1:
-            speed = max(speed, float(np.linalg.norm(np.diff(pos, axis=0), axis=-1).max()) / frame_dt)
-    return speed
-
-
-def sim_settings(objects: list[ObjectTruth], box_size: float, grid: int, frame_dt: float, substeps: int,
+def sim_settings(objects: list[SceneObject], box_size: float, grid: int, frame_dt: float, substeps: int,
                  max_speed: float = 0.0, cfl_number: float = 0.5) -> SimSettings:
     """The discretisation the Warp simulator takes for ``grid`` cells over ``box_size`` metres with at least
     ``substeps`` per frame: :func:`endogsim.physics.plan_substeps` (CFL number ``cfl_number``, tool speed
@@ -191,8 +151,8 @@ def tissue_from_surface(points: np.ndarray, edge_dist: np.ndarray, thickness: fl
     return {"x": x, "ids": np.full(len(x), object_id, np.int64), "vol": vol, "anchored": anchored}
 
 
-def ground_truth_and_identification(spec: dict[str, Any], objects: list[ObjectTruth], box_size: float,
-                                     tools: list[ToolTruth], name: str) -> tuple[SimSettings, SimSettings]:
+def ground_truth_and_identification(spec: dict[str, Any], objects: list[SceneObject], box_size: float,
+                                     tools: list[ToolCapsule], name: str) -> tuple[SimSettings, SimSettings]:
     """The two discretisations of a scene from the suite's numerics keys.
 
     Identification: ``ident_grid`` cells, ``frame_dt / ident_dt`` substeps (the suite: 50^3 as the paper, but
@@ -232,7 +192,7 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
     objects, parts_g, parts_p = [], [], []
     bcs: list[dict[str, Any]] = [{"type": "box_walls", "cells": 2}]
     for k, o in enumerate(spec["objects"]):
-        objects.append(ObjectTruth(id=o["id"], name=o["name"], klass=o["class"], rigid=o["rigid"],
+        objects.append(SceneObject(id=o["id"], name=o["name"], klass=o["class"], rigid=o["rigid"],
                                    E=float(o["E"]), nu=float(o["nu"]), density=float(o["density"])))
         mask, edge, height = _outline(o)
         center = (o["center"][0], o["center"][1], D)
@@ -248,11 +208,11 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
         bcs.append({"type": "anchors", "object": o["name"], **o.get("anchors", {})})
 
     t = spec["tool"]
-    objects.append(ObjectTruth(id=t["id"], name=t["name"], klass=t["class"], rigid=True,
+    objects.append(SceneObject(id=t["id"], name=t["name"], klass=t["class"], rigid=True,
                                E=float(t["E"]), nu=float(t["nu"]), density=float(t["density"])))
     tip, end = np.array(t["tip"], float), np.array(t["end"], float)
     tool_g = proc.tool_gaussians(tip, end, t["radius"], 0.8 * g_sp, t["id"], seed=seed, jaw=t.get("jaw", False))
-    tool = tool_truth(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T))
+    tool = tool_capsule(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T))
 
     tissue = Gaussians.concat(parts_g)
     allg = Gaussians.concat([tissue, tool_g])

@@ -1,10 +1,11 @@
 """Simulate the scene for given materials and render it: the differentiable forward model of identification.
 
-    materials (log10 E, nu per object)  --mpm_rollout-->  particle positions [T,P,3], F [T,P,3,3]
+    materials (E, nu per object)  --Simulator.rollout-->  particle positions [T,P,3], F [T,P,3,3]
         --drive_gaussians-->  Gaussian means / covariances per frame (tools follow their rigid transforms)
         --render_with_flow-->  RGB [T,H,W,3] and Gaussian flow t -> t+1 [T-1,H,W,2] (or at every k-th frame)
 
-Every step is differentiable, so a loss on the renders back-propagates to log10 E and nu.
+Every step is differentiable, so a loss on the renders back-propagates to E and nu (and through them to
+the optimiser's log10 E and raw nu).
 """
 
 from __future__ import annotations
@@ -17,11 +18,10 @@ import torch
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.render import rasterize
-from endogsim.identify.problem import IdentifyProblem
-from endogsim.materials.field import MaterialField, MaterialParams
-from endogsim.physics import drive_gaussians, mpm_rollout
+from endogsim.physics import GradMode, ObjectMaterials, drive_gaussians
+from endogsim.scene.folder import SimScene
 
-__all__ = ["Rendered", "material_tables", "simulate_materials", "frame_gaussians", "render_sequence"]
+__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "render_sequence"]
 
 
 @dataclass
@@ -42,36 +42,14 @@ class Rendered:
     frames: list[int]
 
 
-def material_tables(field: MaterialField, params: MaterialParams | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-object-id arrays for the simulator (length max_id + 1): log10 E [Pa], nu, density [kg/m^3].
-
-    The deformable objects' entries come from ``params`` (differentiable) when given, else from the records.
-    Ids without a record get harmless values (no particle carries them).
-    """
-    table = field.per_object()
-    n = len(table["E"])
-    E = torch.as_tensor(table["E"], dtype=torch.float64).nan_to_num(1e3)
-    log10_E = torch.log10(E)
-    nu = torch.as_tensor(table["nu"], dtype=torch.float64).nan_to_num(0.3)
-    rho = torch.as_tensor(table["rho"], dtype=torch.float64).nan_to_num(1000.0)
-    if params is not None:
-        idx = torch.zeros(n, dtype=torch.long)
-        mask = torch.zeros(n, dtype=torch.bool)
-        for oid in params.object_ids:
-            idx[oid], mask[oid] = params.slot(oid), True
-        log10_E = torch.where(mask, params.log10_E.to(torch.float64)[idx], log10_E)
-        nu = torch.where(mask, params.nu().to(torch.float64)[idx], nu)
-    return log10_E, nu, rho
+def simulate_materials(scene: SimScene, materials: ObjectMaterials,
+                       grad_mode: GradMode = "frame") -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable rollout of the scene's particles over all its frames: positions [T, P, 3] (m) and
+    F [T, P, 3, 3]; gradients flow to ``materials``' E, nu and density."""
+    return scene.simulator().rollout(materials, grad_mode)
 
 
-def simulate_materials(problem: IdentifyProblem, log10_E: torch.Tensor, nu: torch.Tensor, density: torch.Tensor,
-                       num_frames: int, grad_mode: str = "frame") -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable rollout of the problem's particles: positions [T, P, 3] (m) and F [T, P, 3, 3]."""
-    return mpm_rollout(problem.particles, log10_E, nu, density, problem.scenario, problem.mpm, num_frames,
-                       grad_mode=grad_mode)
-
-
-def frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
+def frame_gaussians(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
     """Means [N, 3] and covariances [N, 3, 3] of every Gaussian at frame t (float32, differentiable)."""
     g = problem.gaussians
     means, covs, _ = drive_gaussians(g, problem.binding, positions[t].float(), F[t].float(), rotate_colors=False)
@@ -89,7 +67,7 @@ def frame_gaussians(problem: IdentifyProblem, positions: torch.Tensor, F: torch.
     return means, covs
 
 
-def render_sequence(problem: IdentifyProblem, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
+def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
                     backend: str = "auto", frames: Sequence[int] | None = None) -> Rendered:
     """Render frames of a simulation and the Gaussian flow from each to the next.
 

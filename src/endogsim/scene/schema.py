@@ -1,14 +1,15 @@
-"""Typed records of the benchmark: the suite file's scene specs and a synthesized folder's ``scene.json``.
+"""The schema of a scene folder's ``scene.json``: objects, camera, and the scenario to simulate.
 
-``scene.json`` (written by :func:`endogsim.synth.synthesize`) holds everything identification needs to
-rebuild the exact scenario; :func:`load_scene_truth` reads it back into :class:`SceneTruth`.
+A scene folder is written by :func:`endogsim.synth.synthesize` (a benchmark scene, whose objects carry
+their ground-truth materials) or by :func:`endogsim.pipeline.scene_from_reconstruction` (a real video,
+whose materials are unknown: ``E``, ``nu``, ``density`` null). It holds everything identification and
+simulation need to rebuild the scenario; :func:`load_scene_spec` reads it back into :class:`SceneSpec`.
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -16,33 +17,29 @@ import numpy as np
 
 from endogsim.errors import DataError
 
-__all__ = [
-    "ObjectTruth", "ToolTruth", "SimSettings", "ScenarioTruth", "CameraTruth", "SceneTruth",
-    "load_suite", "suite_scene_names", "scene_spec", "load_scene_truth",
-]
+__all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ScenarioSpec", "CameraSpec", "SceneSpec", "load_scene_spec"]
 
 SCENE_JSON_VERSION = 1
-# Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
-# with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
-GENERATOR_REVISION = 2
 
 
 @dataclass
-class ObjectTruth:
-    """One object's ground truth. ``E`` in Pa, ``density`` in kg/m^3; ``klass`` is the prior-table key."""
+class SceneObject:
+    """One object of the scene: id (in masks, Gaussians, particles), name, prior-table class, rigid flag,
+    and its ground-truth material where known (a benchmark scene; null for a real video): ``E`` in Pa,
+    ``nu``, ``density`` in kg/m^3, constitutive ``model``."""
 
     id: int
     name: str
     klass: str
     rigid: bool
-    E: float
-    nu: float
-    density: float
+    E: float | None = None
+    nu: float | None = None
+    density: float | None = None
     model: str = "fixed_corotated"
 
 
 @dataclass
-class ToolTruth:
+class ToolCapsule:
     """A kinematic tool collider: capsule from ``tip`` to ``end`` (metres, frame 0) of ``radius`` (metres);
     ``transforms`` [T][4][4] rigid world transforms per frame (frame 0 = identity); sticky contact."""
 
@@ -70,7 +67,7 @@ class SimSettings:
 
 
 @dataclass
-class ScenarioTruth:
+class ScenarioSpec:
     """The scenario: sim box (world corner ``box_lo`` and edge ``box_size`` in metres; world -> sim is
     (x - box_lo) / box_size), gravity (m/s^2, world), boundary conditions, tools, the particle layout and
     two discretisations: ``ground_truth`` (used to make the video) and ``identification`` (defaults)."""
@@ -81,7 +78,7 @@ class ScenarioTruth:
     frame_dt: float
     damping: float
     boundary_conditions: list[dict[str, Any]]
-    tools: list[ToolTruth]
+    tools: list[ToolCapsule]
     particle_spacing: float
     extrusion: dict[str, Any]
     ground_truth: SimSettings
@@ -89,7 +86,7 @@ class ScenarioTruth:
 
 
 @dataclass
-class CameraTruth:
+class CameraSpec:
     """Pinhole camera: K [3][3] pixels, image size, world->camera ``viewmat`` [4][4] (identity)."""
 
     K: list[list[float]]
@@ -99,20 +96,20 @@ class CameraTruth:
 
 
 @dataclass
-class SceneTruth:
+class SceneSpec:
     """The parsed ``scene.json`` of a synthesized scene folder."""
 
     name: str
     seed: int
     frames: int
-    objects: list[ObjectTruth]
-    scenario: ScenarioTruth
-    camera: CameraTruth
+    objects: list[SceneObject]
+    scenario: ScenarioSpec
+    camera: CameraSpec
     depth_scale: float
     files: dict[str, str] = field(default_factory=dict)
     source: str = "procedural"
     version: int = SCENE_JSON_VERSION
-    generator: int = GENERATOR_REVISION
+    generator: int = 0
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -121,18 +118,18 @@ class SceneTruth:
         return d
 
     @property
-    def deformable(self) -> list[ObjectTruth]:
+    def deformable(self) -> list[SceneObject]:
         return [o for o in self.objects if not o.rigid]
 
-    def object(self, name_or_id: str | int) -> ObjectTruth:
+    def object(self, name_or_id: str | int) -> SceneObject:
         for o in self.objects:
             if o.id == name_or_id or o.name == name_or_id:
                 return o
         raise DataError(f"scene {self.name!r} has no object {name_or_id!r}")
 
 
-def load_scene_truth(path: str | Path) -> SceneTruth:
-    """Read ``scene.json`` (or the folder holding it) into a :class:`SceneTruth`."""
+def load_scene_spec(path: str | Path) -> SceneSpec:
+    """Read ``scene.json`` (or the folder holding it) into a :class:`SceneSpec`."""
     p = Path(path)
     if p.is_dir():
         p = p / "scene.json"
@@ -140,38 +137,16 @@ def load_scene_truth(path: str | Path) -> SceneTruth:
         raise DataError(f"{p}: no scene.json (make one with `endogsim synth`)")
     try:
         d = json.loads(p.read_text())
-        objects = [ObjectTruth(**{("klass" if k == "class" else k): v for k, v in o.items()}) for o in d["objects"]]
+        objects = [SceneObject(**{("klass" if k == "class" else k): v for k, v in o.items()}) for o in d["objects"]]
         sc = dict(d["scenario"])
-        sc["tools"] = [ToolTruth(**t) for t in sc["tools"]]
+        sc["tools"] = [ToolCapsule(**t) for t in sc["tools"]]
         sc["ground_truth"] = SimSettings(**sc["ground_truth"])
         sc["identification"] = SimSettings(**sc["identification"])
-        return SceneTruth(
-            name=d["name"], seed=d["seed"], frames=d["frames"], objects=objects, scenario=ScenarioTruth(**sc),
-            camera=CameraTruth(**d["camera"]), depth_scale=d["depth_scale"], files=d.get("files", {}),
+        return SceneSpec(
+            name=d["name"], seed=d["seed"], frames=d["frames"], objects=objects, scenario=ScenarioSpec(**sc),
+            camera=CameraSpec(**d["camera"]), depth_scale=d["depth_scale"], files=d.get("files", {}),
             source=d.get("source", "procedural"), version=d.get("version", SCENE_JSON_VERSION),
-            generator=d.get("generator", 1),
+            generator=d.get("generator", 0),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{p}: malformed scene.json ({exc})") from exc
-
-
-def load_suite() -> dict[str, Any]:
-    """The packaged suite file ``endogsim/data/benchmark_suite.json`` as a dict."""
-    text = resources.files("endogsim").joinpath("data/benchmark_suite.json").read_text()
-    return json.loads(text)
-
-
-def suite_scene_names() -> list[str]:
-    return list(load_suite()["scenes"])
-
-
-def scene_spec(name: str) -> dict[str, Any]:
-    """The suite entry of scene ``name`` with the suite defaults filled in."""
-    suite = load_suite()
-    if name not in suite["scenes"]:
-        raise DataError(f"unknown benchmark scene {name!r}; choose one of {', '.join(suite['scenes'])} "
-                        "or use --from DATA_DIR")
-    spec = dict(suite["defaults"])
-    spec.update(suite["scenes"][name])
-    spec["name"] = name
-    return spec

@@ -1,4 +1,7 @@
-"""An identification problem read from a scene folder: what was observed and the world to simulate it in.
+"""A scene folder loaded for simulation: what was observed and the world to simulate it in.
+
+Shared by identification (:mod:`endogsim.identify`), new interactions (:mod:`endogsim.pipeline.simulate`) and
+validation on held-out frames; the benchmark generator (:mod:`endogsim.synth`) writes such folders.
 
 A scene folder (``endogsim synth``, or any folder laid out the same way) gives:
   * the observed video ``images/`` (and ``object_masks/`` for the valid pixels),
@@ -10,14 +13,14 @@ A scene folder (``endogsim synth``, or any folder laid out the same way) gives:
     particles are made from the deformable Gaussians (extruded along the viewing rays by the scenario's
     thickness) and the boundary conditions are rebuilt from their description in ``scene.json``.
 
-:func:`load_problem` turns that into an :class:`IdentifyProblem` holding the simulator's inputs
+:func:`load_sim_scene` turns that into an :class:`SimScene` holding the simulator's inputs
 (:class:`~endogsim.physics.Particles`, :class:`~endogsim.physics.Scenario`, :class:`~endogsim.physics.MPMConfig`)
 and the renderer's (Gaussians, camera, per-Gaussian binding to particles). Units: metres, seconds, Pa.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,22 +39,23 @@ from endogsim.physics import (
     RigidCollider,
     Scenario,
     SimBox,
+    Simulator,
     bind_gaussians,
     capsule_collider_points,
     particles_from_gaussians,
 )
-from endogsim.synth.spec import SceneTruth, load_scene_truth
+from endogsim.scene.schema import SceneSpec, load_scene_spec
 
-__all__ = ["IdentifyProblem", "load_problem", "capsule_collider_points", "read_observations"]
+__all__ = ["SimScene", "load_sim_scene", "read_observations"]
 
 
 @dataclass
-class IdentifyProblem:
+class SimScene:
     """Everything one identification needs, in world units.
 
     Attributes:
         folder: the scene folder.
-        truth: the parsed ``scene.json`` (ground-truth materials are used only for metrics).
+        spec: the parsed ``scene.json`` (ground-truth materials are used only for metrics).
         labels: id -> ObjectLabel (tools are the rigid objects), for material initialisation.
         frames: [T, H, W, 3] float32 observed RGB in [0, 1].
         object_masks: [T, H, W] int32 object id per pixel (0 = background) or None.
@@ -67,7 +71,7 @@ class IdentifyProblem:
     """
 
     folder: Path
-    truth: SceneTruth
+    spec: SceneSpec
     labels: dict[int, ObjectLabel]
     frames: np.ndarray
     object_masks: np.ndarray | None
@@ -81,32 +85,40 @@ class IdentifyProblem:
     tool_transforms: dict[int, torch.Tensor]
     gt_flow: np.ndarray | None = None
     gt_flow_valid: np.ndarray | None = None
+    _simulator: Simulator | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def num_frames(self) -> int:
         return int(self.frames.shape[0])
 
+    def simulator(self) -> Simulator:
+        """The scene's :class:`~endogsim.physics.Simulator` over all its frames, built once (its engine and
+        backward buffers are reused by every rollout, e.g. every iteration of identification)."""
+        if self._simulator is None:
+            self._simulator = Simulator(self.particles, self.scenario, self.mpm, self.num_frames)
+        return self._simulator
+
     @property
-    def has_truth(self) -> bool:
+    def has_ground_truth(self) -> bool:
         """Whether every deformable object has ground-truth E and nu (synthesized scenes; not a real video's
         scene built from a reconstruction, whose scene.json leaves them null)."""
-        deformable = [o for o in self.truth.objects if not o.rigid]
+        deformable = [o for o in self.spec.objects if not o.rigid]
         return bool(deformable) and all(o.E is not None and o.nu is not None for o in deformable)
 
 
-def read_observations(folder: Path, truth: SceneTruth, frames: int) -> tuple[np.ndarray, np.ndarray | None,
+def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.ndarray, np.ndarray | None,
                                                                            np.ndarray | None, np.ndarray | None]:
     """Observed frames [T, H, W, 3], object masks [T, H, W] (or None), ground-truth flow [T-1, H, W, 2] and
     its valid mask [T-1, H, W] (or None) of a scene folder."""
-    pat = truth.files.get("images", "images/frame-%06d.color.png")
+    pat = spec.files.get("images", "images/frame-%06d.color.png")
     imgs = [read_rgb(folder / (pat % t)) for t in range(frames)]
     out_frames = np.stack(imgs)
     masks = None
-    mpat = truth.files.get("object_masks")
+    mpat = spec.files.get("object_masks")
     if mpat and (folder / (mpat % 0)).is_file():
         masks = np.stack([read_grey(folder / (mpat % t)).astype(np.int32) for t in range(frames)])
     flow = valid = None
-    fpat, vpat = truth.files.get("flow"), truth.files.get("flow_valid")
+    fpat, vpat = spec.files.get("flow"), spec.files.get("flow_valid")
     if fpat and (folder / (fpat % 0)).is_file():
         flow = np.stack([np.load(folder / (fpat % t)).astype(np.float32) for t in range(frames - 1)])
         if vpat and (folder / (vpat % 0)).is_file():
@@ -116,17 +128,17 @@ def read_observations(folder: Path, truth: SceneTruth, frames: int) -> tuple[np.
     return out_frames, masks, flow, valid
 
 
-def _particles_without_file(g: Gaussians, truth: SceneTruth, camera: Camera, deformable: list[int]) -> tuple[Particles, np.ndarray]:
+def _particles_without_file(g: Gaussians, spec: SceneSpec, camera: Camera, deformable: list[int]) -> tuple[Particles, np.ndarray]:
     """Particles from the deformable Gaussians and the anchors rebuilt from the scene's description.
 
     Back face: the deepest extrusion layer (along the viewing ray); border: particles within ``border``
     metres (in the image-parallel plane) of the object's outline.
     """
-    sc = truth.scenario
+    sc = spec.scenario
     thick = sc.extrusion.get("thickness", {}) if isinstance(sc.extrusion, dict) else {}
     parts, anchored = [], []
     for oid in deformable:
-        name = truth.object(oid).name
+        name = spec.object(oid).name
         t = float(thick.get(name, 0.0)) if isinstance(thick, dict) else float(thick)
         p = particles_from_gaussians(g, sc.particle_spacing, [oid], thickness=t, camera=camera if t > 0 else None)
         bc = next((b for b in sc.boundary_conditions if b.get("type") == "anchors" and b.get("object") == name), {})
@@ -152,8 +164,8 @@ def _particles_without_file(g: Gaussians, truth: SceneTruth, camera: Camera, def
     return Particles.concat(parts), np.concatenate(anchored)
 
 
-def load_problem(folder: str | Path, frames: int | None = None, device: str = "cpu") -> IdentifyProblem:
-    """Read a scene folder into an :class:`IdentifyProblem`.
+def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu") -> SimScene:
+    """Read a scene folder into an :class:`SimScene`.
 
     Args:
         folder: a folder with ``scene.json`` (``endogsim synth`` output layout).
@@ -164,32 +176,32 @@ def load_problem(folder: str | Path, frames: int | None = None, device: str = "c
 
     folder = Path(folder)
     if not (folder / "scene.json").is_file():
-        raise DataError(f"{folder}: no scene.json; identification needs a scene folder with the scenario "
-                        "(make one with `endogsim synth NAME --out DIR`)")
-    truth = load_scene_truth(folder)
-    T = truth.frames if frames is None else int(frames)
-    if T < 2 or T > truth.frames:
-        raise DataError(f"{folder}: frames = {T} must lie in [2, {truth.frames}]")
-    obs, masks, flow, valid = read_observations(folder, truth, T)
-    cam_t = truth.camera
+        raise DataError(f"{folder}: no scene.json; a simulation needs a scene folder with the scenario "
+                        "(make one with `endogsim synth NAME --out DIR` or `endogsim run DATA`)")
+    spec = load_scene_spec(folder)
+    T = spec.frames if frames is None else int(frames)
+    if T < 2 or T > spec.frames:
+        raise DataError(f"{folder}: frames = {T} must lie in [2, {spec.frames}]")
+    obs, masks, flow, valid = read_observations(folder, spec, T)
+    cam_t = spec.camera
     camera = Camera(torch.tensor(cam_t.K, dtype=torch.float32), cam_t.width, cam_t.height,
                     torch.tensor(cam_t.viewmat, dtype=torch.float32))
     if obs.shape[1:3] != (camera.height, camera.width):
         raise DataError(f"{folder}: images are {obs.shape[2]}x{obs.shape[1]}, scene.json camera {camera.width}x{camera.height}")
-    ply = folder / truth.files.get("gaussians_t0", "gaussians_t0.ply")
+    ply = folder / spec.files.get("gaussians_t0", "gaussians_t0.ply")
     if not ply.is_file():
         raise DataError(f"{ply}: frame-0 Gaussians missing")
     g = read_ply(ply)
-    labels = {o.id: ObjectLabel(o.id, o.name, bool(o.rigid), o.klass) for o in truth.objects}
-    deformable = [o.id for o in truth.objects if not o.rigid]
+    labels = {o.id: ObjectLabel(o.id, o.name, bool(o.rigid), o.klass) for o in spec.objects}
+    deformable = [o.id for o in spec.objects if not o.rigid]
     if not deformable:
         raise DataError(f"{folder}: scene.json has no deformable object to identify")
 
-    sc = truth.scenario
+    sc = spec.scenario
     ident = sc.identification
     box = SimBox(tuple(float(v) for v in sc.box_lo), float(sc.box_size))
     dx = box.size / ident.grid
-    pfile = folder / truth.files.get("particles_t0", "particles_t0.npz")
+    pfile = folder / spec.files.get("particles_t0", "particles_t0.npz")
     if pfile.is_file():
         d = np.load(pfile)
         keep = np.isin(d["object_id"], deformable)
@@ -198,7 +210,7 @@ def load_problem(folder: str | Path, frames: int | None = None, device: str = "c
                               torch.as_tensor(d["object_id"][keep], dtype=torch.int64))
         anchored = d["anchored"][keep].astype(bool)
     else:
-        particles, anchored = _particles_without_file(g, truth, camera, deformable)
+        particles, anchored = _particles_without_file(g, spec, camera, deformable)
 
     colliders, tool_tf = [], {}
     for tool in sc.tools:
@@ -212,9 +224,8 @@ def load_problem(folder: str | Path, frames: int | None = None, device: str = "c
     scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=anchors, colliders=colliders)
     walls = next((int(b.get("cells", 2)) for b in sc.boundary_conditions if b.get("type") == "box_walls"), 2)
     mpm = MPMConfig(grid_res=int(ident.grid), frame_dt=float(sc.frame_dt), substeps_per_frame=int(ident.substeps),
-                    dt=None, damping=float(sc.damping), wall="sticky", wall_padding=max(2, walls),
-                    material_model="fixed_corotated", device=device)
+                    dt=None, damping=float(sc.damping), wall="sticky", wall_padding=max(2, walls), device=device)
     binding = bind_gaussians(g.means, g.object_ids, particles)
-    return IdentifyProblem(folder=folder, truth=truth, labels=labels, frames=obs, object_masks=masks, camera=camera,
+    return SimScene(folder=folder, spec=spec, labels=labels, frames=obs, object_masks=masks, camera=camera,
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
                            binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid)
