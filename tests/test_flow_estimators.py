@@ -5,7 +5,7 @@ import pytest
 
 from endogsim.errors import ModelError
 from endogsim.evaluate.flow_metrics import epe, flow_to_color, warp_backward
-from endogsim.priors.flow import DISFlow, get_flow_estimator
+from endogsim.priors.flow import DISFlow, FineDISFlow, FlowConfig, flow_estimator
 
 
 def _texture(h=128, w=160, seed=0):
@@ -34,18 +34,19 @@ def test_dis_recovers_translation():
 
 def test_raft_without_weights_is_a_clear_error(tmp_path):
     with pytest.raises(ModelError, match="weights"):
-        get_flow_estimator("raft")
+        flow_estimator(FlowConfig("raft"))
     missing = tmp_path / "raft_large.pth"
     with pytest.raises(ModelError, match="raft_large.pth"):
-        get_flow_estimator("raft", weights=missing)
+        flow_estimator(FlowConfig("raft", weights=str(missing)))
 
 
 def test_factory_rejects_unknown_names():
-    with pytest.raises(ModelError, match="unknown flow estimator"):
-        get_flow_estimator("farneback-9000")
+    with pytest.raises(ModelError, match="unknown optical-flow estimator 'farneback-9000'; use one of dis, dis_fine, raft"):
+        FlowConfig("farneback-9000")
     with pytest.raises(ModelError, match="preset"):
         DISFlow("slowest")
-    assert isinstance(get_flow_estimator("DIS"), DISFlow)
+    assert isinstance(flow_estimator(FlowConfig("dis")), DISFlow)
+    assert isinstance(flow_estimator(FlowConfig("dis_fine")), FineDISFlow)
 
 
 def test_epe_uses_valid_pixels_only():

@@ -330,7 +330,7 @@ def test_raft_tracks_without_weights_give_a_clear_error(synthetic, tmp_path):
     from endogsim.errors import ModelError
 
     with pytest.raises(ModelError, match="RAFT needs a local weights file"):
-        reconstruct(synthetic, tmp_path, ReconConfig(**{**FAST, "flow_method": "raft"}), resume=False)
+        reconstruct(synthetic, tmp_path, ReconConfig(**{**FAST, "flow": {"method": "raft"}}), resume=False)
 
 
 def test_camera_projection_matches_the_renderer():

@@ -18,8 +18,6 @@ import math
 import time
 from pathlib import Path
 
-
-
 ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
 SCENES_CACHE = Path.home() / ".cache" / "endogsim" / "bench_scenes"  # default of every bench's --scenes-dir
 

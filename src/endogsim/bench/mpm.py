@@ -17,9 +17,6 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
-
-
 
 GRID = 50
 BOX = 0.1  # metres

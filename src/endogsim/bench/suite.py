@@ -23,7 +23,6 @@ import os
 import time
 from pathlib import Path
 
-
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.errors import EndoGSimError
 

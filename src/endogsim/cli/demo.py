@@ -59,13 +59,15 @@ def register(app: typer.Typer) -> None:
             console.print(f"wrote {summary['video']} and {summary['frames_dir']}/ ({summary['num_gaussians']} Gaussians)")
             return
 
+        from dataclasses import replace
+
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
         cfg = DemoConfig(scene=scene)
         if recon_iters is not None:
-            cfg.recon["iters"] = recon_iters
+            cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:
-            cfg.identify["iters"] = identify_iters
+            cfg.identify = replace(cfg.identify, iters=identify_iters)
         s = run_demo(out, cfg, on_stage=_stage_printer())
         print_table("Recovered vs ground-truth materials", ["object", "E true (Pa)", "E prior (Pa)", "E identified (Pa)",
                                                             "nu true", "nu prior", "nu identified"],
@@ -99,11 +101,13 @@ def register(app: typer.Typer) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
         from endogsim.cli.common import console
+        from endogsim.identify.config import IdentifyConfig
         from endogsim.pipeline.run import PipelineConfig, run_pipeline
+        from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = {"iters": identify_iters} if identify_iters is not None else {}
-        cfg = PipelineConfig(materials_backend=materials_backend, recon=recon, identify=ident,
+        ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
+        cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction)
         state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer())
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")

@@ -9,6 +9,7 @@ import typer
 
 from endogsim.cli.common import user_errors
 from endogsim.identify.config import IdentifyConfig
+from endogsim.priors.flow import FlowConfig
 
 _DEFAULT = IdentifyConfig()  # the CLI shows and uses the library's defaults
 
@@ -48,7 +49,7 @@ def register(app: typer.Typer) -> None:
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
-                             flow_estimator=flow, flow_weights=flow_weights, device=device, time_budget=time_budget)
+                             flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
 

@@ -29,7 +29,16 @@ def _main(version: bool = typer.Option(False, "--version", help="Print the versi
 
 def _register() -> None:
     # Each module owns its commands; importing it must stay cheap (heavy imports inside commands).
-    from endogsim.cli import bench, demo, identify, info, materials, reconstruct, simulate, synth
+    from endogsim.cli import (
+        bench,
+        demo,
+        identify,
+        info,
+        materials,
+        reconstruct,
+        simulate,
+        synth,
+    )
 
     for module in (info, demo, synth, reconstruct, identify, simulate):  # demo also adds `run`
         module.register(app)

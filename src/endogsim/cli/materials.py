@@ -42,7 +42,13 @@ def register(app: typer.Typer) -> None:
         downscale: float = typer.Option(None, help="Frame downscale when reading a data folder."),
     ) -> None:
         """Initialise the object-wise material field and write it to --out."""
-        from endogsim.materials import MaterialInitConfig, MLLMConfig, ManualMaterial, initialise_materials, load_objects
+        from endogsim.materials import (
+            ManualMaterial,
+            MaterialInitConfig,
+            MLLMConfig,
+            initialise_materials,
+            load_objects,
+        )
         from endogsim.materials.field import MaterialRecord
 
         # Validate the manual value up front so a bad number is reported as such.

@@ -33,8 +33,8 @@ def register(app: typer.Typer) -> None:
         seg_checkpoint: Optional[str] = typer.Option(None, "--seg-checkpoint", help="Local SAM 2 checkpoint (.pt)."),
         seg_config: Optional[str] = typer.Option(None, "--seg-config", help="sam2 model config of the checkpoint."),
         flow_method: Optional[str] = typer.Option(None, "--flow-method",
-                                                  help="Optical flow for the point tracks: dis (offline), raft "
-                                                       "(needs --flow-weights) or none (no tracks)."),
+                                                  help="Optical flow for the point tracks: dis (offline), dis_fine, "
+                                                       "raft (needs --flow-weights) or none (no tracks)."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights (.pth)."),
         camera_motion: Optional[str] = typer.Option(None, "--camera-motion",
                                                     help="auto, on or off: learn a pose per frame for a moving "
@@ -54,7 +54,9 @@ def register(app: typer.Typer) -> None:
                           time_budget_s=time_budget,
                           max_frames=max_frames, depth_method=depth_method, depth_weights=depth_weights,
                           seg_method=seg_method, seg_checkpoint=seg_checkpoint, seg_config=seg_config,
-                          flow_method=flow_method, flow_weights=flow_weights, camera_motion=camera_motion)
+                          point_tracks=None if flow_method is None else flow_method != "none",
+                          flow=None if flow_method in (None, "none") else {"method": flow_method, "weights": flow_weights},
+                          camera_motion=camera_motion)
         with progress() as bar:
             task = bar.add_task("reconstruct", total=cfg.iters)
 

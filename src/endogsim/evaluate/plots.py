@@ -29,20 +29,22 @@ def _save(fig, path: Path) -> Path:
 
 def plot_loss(history: Sequence[Mapping], path: str | os.PathLike, best_iteration: int | None = None,
               title: str = "identification loss") -> Path:
-    """Total loss, render term and (unweighted) flow term per iteration, log scale.
+    """Total loss and each (unweighted) loss term per iteration, log scale.
 
     Args:
-        history: one mapping per iteration with keys ``iteration``, ``loss``, ``render``, ``flow``.
+        history: one mapping per iteration with keys ``iteration``, ``loss`` (the total) and ``terms``
+            ({term name: unweighted value}).
         path: PNG to write.
         best_iteration: marked with a vertical line.
     """
     plt = _figure()
     fig, ax = plt.subplots(figsize=(6, 3.6))
     it = [h["iteration"] for h in history]
-    for key, label in (("loss", "total"), ("render", "render  sum_t |I - I^|^2"), ("flow", "flow  sum_t |U - U^|^2 (px^2)")):
-        vals = [max(float(h[key]), 1e-30) for h in history]
-        if vals:
-            ax.plot(it, vals, marker=".", label=label)
+    series = {"total": [h["loss"] for h in history]}
+    for name in (history[0].get("terms", {}) if history else {}):
+        series[name] = [h["terms"][name] for h in history]
+    for label, vals in series.items():
+        ax.plot(it, [max(float(v), 1e-30) for v in vals], marker=".", label=label)
     if best_iteration is not None and best_iteration >= 0:
         ax.axvline(best_iteration, color="k", ls=":", lw=1, label="kept iterate")
     ax.set_yscale("log")

@@ -81,7 +81,6 @@ def project_gaussians(
         viewmat: [4, 4] world->camera transform.
         width, height: image size (pixels).
     """
-    dtype = means.dtype
     mc, cc = world_to_camera(means, covars, viewmat)
     x, y, z = mc.unbind(-1)
     in_depth = (z > config.near_plane) & (z < config.far_plane)

@@ -35,7 +35,11 @@ import torch
 from endogsim.errors import ModelError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, covariance_from_scale_rot
-from endogsim.gaussians.rasterize_torch import build_pairs, project_gaussians, rasterize_torch
+from endogsim.gaussians.rasterize_torch import (
+    build_pairs,
+    project_gaussians,
+    rasterize_torch,
+)
 from endogsim.gaussians.rasterize_warp import bin_gaussians, rasterize_warp
 from endogsim.gaussians.sh import sh_to_rgb
 from endogsim.gaussians.types import RasterConfig, RenderOutput

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
-from typing import Any, Literal
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal, get_args
 
 from endogsim.errors import MaterialError
 from endogsim.physics.modes import GRAD_MODES, GradMode
+from endogsim.priors.flow import FlowConfig
 
 LossKind = Literal["joint", "render", "flow"]
-LOSSES = ("joint", "render", "flow")
+LOSSES: tuple[str, ...] = get_args(LossKind)
 
 
 @dataclass
@@ -19,6 +20,8 @@ class IdentifyConfig:
     Attributes:
         loss: "joint" (the paper's L = render + lambda * flow), "render" (appearance only) or "flow" (motion only).
         flow_weight: lambda, the weight of the flow term (paper: 0.1).
+        loss_terms: explicit {term: weight} over the registered loss terms
+            (:data:`endogsim.identify.loss.LOSS_TERMS`), replacing the ``loss`` preset when given.
         grad_mode: gradient through the simulator: "last_substep" (paper), "frame" or "full"
             (see :func:`endogsim.physics.mpm_rollout`). Default "full": on ``tiny`` (10 frames, E 2x and
             3x too stiff) its d loss / d log10 E is within 3% of central finite differences of the same
@@ -46,9 +49,8 @@ class IdentifyConfig:
             low-pass makes reduced-scale renders differ from the area-downsampled observations by a
             near-constant offset (1e-3 per frame on ``tiny``, 1e-4 at scale 1); over a whole clip it does not
             move the loss minimum (on ``tiny`` the joint loss is least at the true E at 0.5 and at 1).
-        flow_estimator: "dis_fine" (offline default: DIS tuned for sub-pixel motion), "dis" (OpenCV DIS
-            "medium" preset) or "raft" (needs ``flow_weights``).
-        flow_weights: local RAFT weights file.
+        flow: the observed-flow estimator (:class:`~endogsim.priors.flow.FlowConfig`; default "dis_fine",
+            DIS tuned for sub-pixel motion; "raft" needs a local weights file).
         frames: use only the first ``frames`` frames (None = all).
         frame_stride: compare every k-th frame (t = 0, k, 2k, ...: its image and its flow to t + 1); the
             simulation still runs through every frame. Rendering dominates a CPU iteration, so the default
@@ -59,6 +61,7 @@ class IdentifyConfig:
 
     loss: LossKind = "joint"
     flow_weight: float = 0.1
+    loss_terms: dict[str, float] | None = None
     grad_mode: GradMode = "full"
     iters: int = 30
     lr: float = 0.1
@@ -75,8 +78,7 @@ class IdentifyConfig:
     stability_margin: float = 0.95
     optimize_nu: bool = True
     render_scale: float = 0.5
-    flow_estimator: str = "dis_fine"
-    flow_weights: str | None = None
+    flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))
     frames: int | None = None
     frame_stride: int = 2
     seed: int = 0
@@ -102,6 +104,22 @@ class IdentifyConfig:
         if self.flow_weight < 0:
             raise MaterialError(f"flow_weight = {self.flow_weight} must be >= 0")
         self.nu_bounds = (float(self.nu_bounds[0]), float(self.nu_bounds[1]))
+        if isinstance(self.flow, dict):
+            self.flow = FlowConfig(**self.flow)
+        if self.loss_terms is not None:
+            from endogsim.identify.loss import LOSS_TERMS
+
+            for name, w in self.loss_terms.items():
+                LOSS_TERMS.get(name)
+                if not w >= 0:
+                    raise MaterialError(f"loss term {name!r} weight {w} must be >= 0")
+
+    def term_weights(self) -> dict[str, float]:
+        """{loss term: weight} of this run: ``loss_terms``, or the ``loss`` preset with ``flow_weight``."""
+        if self.loss_terms is not None:
+            return dict(self.loss_terms)
+        return {"joint": {"render": 1.0, "flow": self.flow_weight}, "render": {"render": 1.0},
+                "flow": {"flow": self.flow_weight}}[self.loss]
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

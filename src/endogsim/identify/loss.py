@@ -2,6 +2,10 @@
 
     L = sum_t ||I_t - I^_t||^2 + lambda sum_t ||U(I_t, I_t+1) - U^_t||^2        (lambda = 0.1)
 
+Each term is registered by name in :data:`LOSS_TERMS` ("render", "flow"); the configuration gives the
+weights (:meth:`endogsim.identify.IdentifyConfig.term_weights`), and the parts come back by name, so the
+history, plots and tables list whatever terms a run used.
+
 Each squared norm is the mean over the frame's valid pixels (RGB in [0, 1] summed over channels; flow in
 pixels summed over x and y), so the value does not depend on the image size. I_t are the observed frames,
 I^_t the renders of the simulation; U the flow estimator on consecutive observed frames (computed once and
@@ -18,17 +22,21 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from endogsim.scene.forward import Rendered
+from endogsim.errors import MaterialError
 from endogsim.io.atomic import save_npz_atomic
 from endogsim.io.images import resize_frames
+from endogsim.priors.flow import FlowConfig, flow_estimator
+from endogsim.registry import Registry
+from endogsim.scene.forward import Rendered
 
-__all__ = ["Observations", "make_observations", "observed_flow", "identification_loss"]
+__all__ = ["Observations", "make_observations", "observed_flow", "LOSS_TERMS", "identification_loss"]
 
 
 @dataclass
@@ -56,56 +64,26 @@ def _frames_key(frames: np.ndarray, estimator: str) -> str:
     return h.hexdigest()[:16]
 
 
-def _fine_dis():
-    """DIS tuned for the sub-pixel motion of tissue between video frames (adapter over
-    :class:`endogsim.priors.flow.DISFlow`): 8-pixel patches every 2 pixels, down to the finest scale, 20
-    variational refinement iterations. On the procedural scenes its end-point error against the
-    ground-truth tissue flow is about half that of the "medium" preset (0.07 vs 0.13 px on ``tiny``), and
-    its bias is a third: the flow term's minimum then sits near the true material."""
-    from endogsim.priors.flow import DISFlow, _to_uint8_gray
-
-    class FineDIS(DISFlow):
-        name = "dis_fine"
-
-        def estimate(self, frame_a: np.ndarray, frame_b: np.ndarray) -> np.ndarray:
-            import cv2
-
-            dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-            dis.setPatchSize(8)
-            dis.setPatchStride(2)
-            dis.setFinestScale(0)
-            dis.setVariationalRefinementIterations(20)
-            return dis.calc(_to_uint8_gray(frame_a), _to_uint8_gray(frame_b), None).astype(np.float32)
-
-    return FineDIS()
-
-
-def observed_flow(frames: np.ndarray, estimator: str = "dis_fine", weights: str | None = None,
+def observed_flow(frames: np.ndarray, flow: FlowConfig = FlowConfig("dis_fine"),
                   cache: str | Path | None = None) -> np.ndarray:
     """Flow of the observed video U(I_t, I_t+1): [T-1, H, W, 2] pixels, cached in ``cache`` (an .npz).
 
     Args:
-        estimator: "dis_fine" (default, see :func:`_fine_dis`), "dis" (OpenCV DIS "medium" preset) or
-            "raft" (needs ``weights``, a local file).
-    The cache is keyed by the estimator and a hash of the frames, so a changed video is never served a
-    stale flow. Written atomically.
+        frames: [T, H, W, 3] RGB in [0, 1].
+        flow: the estimator (:class:`~endogsim.priors.flow.FlowConfig`; default "dis_fine").
+        cache: .npz file keyed by the estimator and a hash of the frames, so a changed video is never
+            served a stale flow. Written atomically.
     """
-    from endogsim.priors.flow import get_flow_estimator
-
-    key = _frames_key(frames, estimator)
+    key = _frames_key(frames, flow.method)
     if cache is not None and Path(cache).is_file():
         with np.load(cache) as d:
             if str(d["key"]) == key:
                 return d["flow"].astype(np.float32)
-    if estimator == "dis_fine":
-        est = _fine_dis()
-    else:
-        est = get_flow_estimator(estimator, **({} if estimator != "raft" else {"weights": weights}))
-    flow = est.estimate_sequence(frames).astype(np.float32)
+    U = flow_estimator(flow).estimate_sequence(frames).astype(np.float32)
     if cache is not None:
-        save_npz_atomic(cache, compressed=True, flow=flow, key=np.array(key),
-                        meta=np.array(json.dumps({"estimator": estimator})))
-    return flow
+        save_npz_atomic(cache, compressed=True, flow=U, key=np.array(key),
+                        meta=np.array(json.dumps({"estimator": flow.method})))
+    return U
 
 
 def make_observations(frames: np.ndarray, flow: np.ndarray, object_masks: np.ndarray | None,
@@ -135,30 +113,42 @@ def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (err * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1.0)
 
 
-def identification_loss(rendered: Rendered, obs: Observations, kind: str = "joint",
-                        flow_weight: float = 0.1) -> tuple[torch.Tensor, dict[str, float]]:
+#: name -> term(rendered, observations) -> [K] per-frame values (unweighted, each a mean over the frame's
+#: valid pixels); the loss is the weighted sum over terms and frames.
+LOSS_TERMS: Registry[Callable[[Rendered, Observations], torch.Tensor]] = Registry("loss term", MaterialError)
+
+
+@LOSS_TERMS.register("render")
+def render_term(rendered: Rendered, obs: Observations) -> torch.Tensor:
+    """||I_t - I^_t||^2 per rendered frame t > 0 (frame 0 is the shared rest state: a constant)."""
+    idx = torch.as_tensor(rendered.frames, dtype=torch.long)
+    sel = idx > 0
+    return _masked_mean((rendered.rgb[sel] - obs.frames[idx[sel]]).square().sum(-1), obs.valid_rgb[idx[sel]])
+
+
+@LOSS_TERMS.register("flow")
+def flow_term(rendered: Rendered, obs: Observations) -> torch.Tensor:
+    """||U(I_t, I_t+1) - U^_t||^2 per rendered frame t < T - 1 (pixels^2)."""
+    idx = torch.as_tensor(rendered.frames, dtype=torch.long)[: rendered.flow.shape[0]]
+    return _masked_mean((rendered.flow - obs.flow[idx]).square().sum(-1), obs.valid_flow[idx])
+
+
+def identification_loss(rendered: Rendered, obs: Observations,
+                        weights: Mapping[str, float]) -> tuple[torch.Tensor, dict[str, float]]:
     """The loss and its parts.
 
     Args:
         rendered: renders of the simulation at ``rendered.frames`` (rgb [K,H,W,3], flow [K',H,W,2]).
         obs: the observations at the same size.
-        kind: "joint" (render + flow_weight * flow), "render" or "flow" (flow_weight * flow).
+        weights: {term name: weight} over :data:`LOSS_TERMS` (e.g. the paper's {"render": 1, "flow": 0.1}).
     Returns:
-        (loss, {"render": float, "flow": float, "total": float}); ``flow`` is the unweighted flow term.
+        (loss, {term: its unweighted sum over frames, ..., "total": loss}).
     """
-    idx = torch.as_tensor(rendered.frames, dtype=torch.long)
-    rgb_sel = idx > 0  # frame 0 is the shared rest state: a constant
-    flow_idx = idx[: rendered.flow.shape[0]]
-    render_t = _masked_mean((rendered.rgb[rgb_sel] - obs.frames[idx[rgb_sel]]).square().sum(-1),
-                            obs.valid_rgb[idx[rgb_sel]])
-    flow_t = _masked_mean((rendered.flow - obs.flow[flow_idx]).square().sum(-1), obs.valid_flow[flow_idx])
-    render, flow = render_t.sum(), flow_t.sum()
-    if kind == "joint":
-        total = render + flow_weight * flow
-    elif kind == "render":
-        total = render
-    elif kind == "flow":
-        total = flow_weight * flow
-    else:
-        raise ValueError(kind)
-    return total, {"render": float(render.detach()), "flow": float(flow.detach()), "total": float(total.detach())}
+    total = torch.zeros((), dtype=torch.float64)
+    parts: dict[str, float] = {}
+    for name, w in weights.items():
+        value = LOSS_TERMS.get(name)(rendered, obs).sum()
+        parts[name] = float(value.detach())
+        total = total + w * value
+    parts["total"] = float(total.detach())
+    return total, parts

@@ -22,17 +22,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from endogsim.errors import DataError, SimulationError
 from endogsim.identify.config import IdentifyConfig
-from endogsim.scene.forward import render_sequence, simulate_materials
-from endogsim.identify.loss import Observations, identification_loss, make_observations, observed_flow
-from endogsim.scene.folder import SimScene
+from endogsim.identify.loss import (
+    Observations,
+    identification_loss,
+    make_observations,
+    observed_flow,
+)
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams
 from endogsim.physics import max_stable_E
+from endogsim.scene.folder import SimScene
+from endogsim.scene.forward import render_sequence, simulate_materials
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
@@ -167,7 +171,7 @@ def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig) -
 def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
     """Observed flow (cached in ``run_dir``) and the observations at the rendering scale, plus the camera."""
     cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
-    U = observed_flow(problem.frames, config.flow_estimator, config.flow_weights, cache)
+    U = observed_flow(problem.frames, config.flow, cache)
     cam = problem.camera if config.render_scale == 1 else problem.camera.scaled(config.render_scale)
     obs = make_observations(problem.frames, U, problem.object_masks, problem.deformable_ids, (cam.width, cam.height))
     return obs, cam
@@ -179,7 +183,7 @@ def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams 
     with torch.set_grad_enabled(grad):
         pos, F = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
         rendered = render_sequence(problem, pos, F, camera, frames=range(0, problem.num_frames, config.frame_stride))
-        return identification_loss(rendered, obs, config.loss, config.flow_weight)
+        return identification_loss(rendered, obs, config.term_weights())
 
 
 def identify(
@@ -278,7 +282,7 @@ def identify(
             leaf.grad.nan_to_num_(0.0, 0.0, 0.0)
         gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
         E, nu = _values(params)
-        rec = {"iteration": k, "loss": parts["total"], "render": parts["render"], "flow": parts["flow"], "lr": lr,
+        rec = {"iteration": k, "loss": parts["total"], "terms": {n: v for n, v in parts.items() if n != "total"}, "lr": lr,
                "grad_norm": gnorm, "grad_log10_E": params.log10_E.grad.tolist(),
                "grad_nu_raw": (params.nu_raw.grad.tolist() if params.nu_raw.grad is not None else None),
                "E": E, "nu": nu}

@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
 from endogsim.identify.config import IdentifyConfig
-from endogsim.scene.forward import render_sequence
 from endogsim.identify.optimize import IdentifyResult
-from endogsim.scene.folder import SimScene
+from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.materials.field import MaterialField
+from endogsim.scene.folder import SimScene
+from endogsim.scene.forward import render_sequence
 
 __all__ = ["Evaluation", "evaluate_field", "material_errors", "write_outputs"]
 

@@ -10,9 +10,9 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import identify
-from endogsim.scene.folder import SimScene, load_sim_scene
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField
+from endogsim.scene.folder import SimScene, load_sim_scene
 
 __all__ = ["initial_field", "run_identify", "INIT_CHOICES"]
 

@@ -35,7 +35,6 @@ import re
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from endogsim.errors import DataError

@@ -1,6 +1,11 @@
 """Object-wise material field and its initialisers (manual, prior table, MLLM, cache replay)."""
 
-from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord, nu_to_raw
+from endogsim.materials.field import (
+    MaterialField,
+    MaterialParams,
+    MaterialRecord,
+    nu_to_raw,
+)
 from endogsim.materials.init import (
     BACKENDS,
     ManualMaterial,
@@ -10,7 +15,12 @@ from endogsim.materials.init import (
     load_objects,
 )
 from endogsim.materials.mllm import MLLMConfig, MLLMFallbackWarning
-from endogsim.materials.prior import CHOLECSEG8K_CLASSES, load_prior_table, prior_record, resolve_class
+from endogsim.materials.prior import (
+    CHOLECSEG8K_CLASSES,
+    load_prior_table,
+    prior_record,
+    resolve_class,
+)
 
 __all__ = [
     "BACKENDS", "CHOLECSEG8K_CLASSES", "MLLMConfig", "MLLMFallbackWarning", "ManualMaterial", "MaterialField",

@@ -18,9 +18,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from endogsim.errors import MaterialError
+from endogsim.io.atomic import write_json_atomic
 from endogsim.physics.constitutive import model_names as constitutive_model_names
 from endogsim.physics.materials import ObjectMaterials
-from endogsim.io.atomic import write_json_atomic
 
 #: Material kinds the simulator does not integrate as elastic solids (rigid instruments, fluids).
 NON_SIMULATED_MODELS = ("rigid", "fluid")

@@ -12,7 +12,13 @@ import numpy as np
 from endogsim.errors import DataError, MaterialError
 from endogsim.io.scene import ObjectLabel, Scene
 from endogsim.materials.field import MaterialField, MaterialRecord
-from endogsim.materials.mllm import MLLMConfig, ObjectQuery, make_client, object_images, query_object
+from endogsim.materials.mllm import (
+    MLLMConfig,
+    ObjectQuery,
+    make_client,
+    object_images,
+    query_object,
+)
 from endogsim.materials.prior import REGIMES, load_prior_table, prior_record
 
 Backend = Literal["manual", "prior", "mllm", "replay"]

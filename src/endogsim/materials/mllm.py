@@ -30,9 +30,9 @@ import numpy as np
 from pydantic import BaseModel, Field, ValidationError
 
 from endogsim.errors import MaterialError
+from endogsim.io.atomic import write_json_atomic
 from endogsim.materials.field import MaterialRecord
 from endogsim.materials.prior import prior_entry, prior_record
-from endogsim.io.atomic import write_json_atomic
 
 PROMPT_VERSION = "endogsim-material-v1"
 API_KEY_ENVS = ("ENDOGSIM_MLLM_API_KEY", "OPENAI_API_KEY")

@@ -16,7 +16,6 @@ from endogsim.errors import SimulationError
 from endogsim.physics.units import SimBox
 
 
-
 @dataclass
 class MPMConfig:
     """Numerics of the MLS-MPM solver (the materials, constitutive models included, are per object:

@@ -13,11 +13,13 @@ Outputs in OUT: ``render.mp4`` and ``frames/`` (the observed video, slowed to at
 from __future__ import annotations
 
 import time
-from endogsim.io.atomic import write_json_atomic
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+
+from endogsim.identify.config import IdentifyConfig
+from endogsim.io.atomic import write_json_atomic
+from endogsim.recon.config import ReconConfig
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -42,8 +44,8 @@ class DemoConfig:
     seed: int = 0
     # Time budgets keep the whole demo within about 10 minutes on a 2-core CPU; each stage stops at its
     # budget with its best result so far.
-    recon: dict[str, Any] = field(default_factory=lambda: {"resolution_scale": 1.0, "iters": 600, "time_budget_s": 180.0})
-    identify: dict[str, Any] = field(default_factory=lambda: {"iters": 10, "time_budget": 180.0})
+    recon: ReconConfig = field(default_factory=lambda: ReconConfig(resolution_scale=1.0, iters=600, time_budget_s=180.0))
+    identify: IdentifyConfig = field(default_factory=lambda: IdentifyConfig(iters=10, time_budget=180.0))
     interaction: str | None = "poke"
     tool_motion: str = "truth"
 
@@ -54,8 +56,8 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import PipelineConfig, run_pipeline
-    from endogsim.synth import synthesize
     from endogsim.scene.schema import load_scene_spec
+    from endogsim.synth import synthesize
 
     out = Path(out)
     t0 = time.perf_counter()

@@ -53,7 +53,13 @@ def build_preview_scene(cfg: PreviewConfig = PreviewConfig()) -> tuple[Gaussians
         tissue Gaussians (object id 1), tool Gaussians (object id 2, at its start pose), the camera
         (world = camera frame at t = 0) and the orbit centre [3] (metres).
     """
-    from endogsim.synth.procedural import bake_lighting, endoscope_camera, surface_gaussians, tissue_surface, tool_gaussians
+    from endogsim.synth.procedural import (
+        bake_lighting,
+        endoscope_camera,
+        surface_gaussians,
+        tissue_surface,
+        tool_gaussians,
+    )
 
     camera = endoscope_camera(cfg.width, cfg.height)
     depth = 0.06

@@ -20,10 +20,15 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Literal, get_args
 
 from endogsim.errors import DataError
+from endogsim.identify.config import IdentifyConfig
 from endogsim.io.atomic import write_json_atomic
+from endogsim.recon.config import ReconConfig
+
+#: Where identification's tool colliders get their motion: the reconstruction, or a ground truth (benchmark).
+ToolMotion = Literal["reconstructed", "truth"]
 
 __all__ = ["PipelineConfig", "run_pipeline", "STAGES"]
 
@@ -36,19 +41,27 @@ class PipelineConfig:
 
     Attributes:
         materials_backend: initial materials: manual | prior | mllm | replay | a material JSON file.
-        recon: overrides of :class:`endogsim.recon.config.ReconConfig` (e.g. ``{"iters": 600}``).
-        identify: overrides of :class:`endogsim.identify.IdentifyConfig` (e.g. ``{"iters": 10}``).
+        recon: the reconstruction stage's :class:`~endogsim.recon.config.ReconConfig`.
+        identify: the identification stage's :class:`~endogsim.identify.IdentifyConfig`.
         interaction: the new interaction of the simulate stage (a built-in name or a JSON file); None skips it.
         tool_motion: tool collider motion for identification: "reconstructed" or "truth" (benchmark only).
         video: write videos (comparison, simulation).
     """
 
     materials_backend: str = "prior"
-    recon: dict[str, Any] = field(default_factory=dict)
-    identify: dict[str, Any] = field(default_factory=dict)
+    recon: ReconConfig = field(default_factory=ReconConfig)
+    identify: IdentifyConfig = field(default_factory=IdentifyConfig)
     interaction: str | None = "poke"
-    tool_motion: str = "reconstructed"
+    tool_motion: ToolMotion = "reconstructed"
     video: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.recon, dict):
+            self.recon = ReconConfig.from_dict(self.recon)
+        if isinstance(self.identify, dict):
+            self.identify = IdentifyConfig.from_json(self.identify)
+        if self.tool_motion not in get_args(ToolMotion):
+            raise DataError(f"tool_motion {self.tool_motion!r} must be 'reconstructed' or 'truth'")
 
 
 def _load_state(path: Path) -> dict:
@@ -106,10 +119,9 @@ def run_pipeline(
         return state["stages"][name]
 
     def reconstruct_stage() -> dict:
-        from endogsim.recon.config import ReconConfig
         from endogsim.recon.train import reconstruct
 
-        m = reconstruct(data, out / "recon", ReconConfig(**cfg.recon))
+        m = reconstruct(data, out / "recon", cfg.recon)
         return {k: m[k] for k in ("psnr_masked", "psnr_endonerf", "ssim", "training_seconds", "num_gaussians") if k in m}
 
     def scenario_stage() -> dict:
@@ -119,10 +131,10 @@ def run_pipeline(
         return {"scene": str(out / "scene")}
 
     def identify_stage() -> dict:
-        from endogsim.identify import IdentifyConfig, run_identify
+        from endogsim.identify import run_identify
 
         m = run_identify(out / "scene", out / "identify", init=cfg.materials_backend,
-                         config=IdentifyConfig(**cfg.identify), video=cfg.video, evaluate_init=truth is not None)
+                         config=cfg.identify, video=cfg.video, evaluate_init=truth is not None)
         keep = ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "iterations", "seconds", "materials")
         return {k: m[k] for k in keep if k in m} | ({"init_metrics": m["init_metrics"]} if "init_metrics" in m else {})
 

@@ -39,11 +39,19 @@ from typing import Annotated, Literal
 
 import numpy as np
 import torch
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from endogsim.errors import DataError, MaterialError, SimulationError
-from endogsim.materials.field import MaterialField
 from endogsim.io.atomic import write_json_atomic
+from endogsim.materials.field import MaterialField
 
 __all__ = ["Interaction", "ToolSpec", "ForceSpec", "GraspSpec", "builtin_interactions", "load_interaction",
            "resolve_scene", "simulate_interaction", "covariance_to_scale_rot"]
@@ -261,8 +269,7 @@ def build_interaction(problem, inter: Interaction):
     Returns:
         (new problem, info dict with the resolved world points in metres).
     """
-    from endogsim.physics import capsule_collider_points
-    from endogsim.physics import ExternalForce, RigidCollider
+    from endogsim.physics import ExternalForce, RigidCollider, capsule_collider_points
     from endogsim.scene.motion import tool_offsets, translations
 
     T = inter.frames
@@ -408,10 +415,10 @@ def simulate_interaction(
         diverged simulation).
     """
     from endogsim.gaussians.ply import write_ply
-    from endogsim.scene.forward import frame_gaussians, render_sequence
-    from endogsim.scene.folder import load_sim_scene
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.physics import simulate
+    from endogsim.scene.folder import load_sim_scene
+    from endogsim.scene.forward import frame_gaussians, render_sequence
 
     out = Path(out)
     inter = load_interaction(interaction)

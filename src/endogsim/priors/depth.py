@@ -1,7 +1,7 @@
 """Depth priors for reconstruction: the dataset's depth, model adapters, and an offline fallback.
 
 Entry point: :func:`estimate_depth` returns a :class:`DepthPrior` (depth in metres for every frame and
-where it came from). Methods:
+where it came from). Back-ends, registered by name in :data:`DEPTH_BACKENDS`:
 
 * ``"dataset"``: the scene's own depth (EndoNeRF stereo depth, procedural ground truth).
 * ``"pi3"``: the pi3 feed-forward geometry model (Wang et al. 2025; ``pi3`` package) with a *local*
@@ -21,17 +21,18 @@ naming what to supply.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from endogsim.errors import DataError, ModelError
+from endogsim.priors import resolve_auto
+from endogsim.registry import Registry
 
 __all__ = ["DepthPrior", "estimate_depth", "fallback_depth", "pi3_depth", "depth_anything_depth",
-           "DEPTH_METHODS", "DEFAULT_WORKING_DISTANCE"]
-
-DEPTH_METHODS = ("auto", "dataset", "pi3", "depth_anything", "fallback")
+           "DEPTH_BACKENDS", "DEFAULT_WORKING_DISTANCE"]
 #: Nominal camera-to-tissue distance of laparoscopy / robotic endoscopy (metres): 5-10 cm.
 DEFAULT_WORKING_DISTANCE = 0.07
 
@@ -164,33 +165,48 @@ def depth_anything_depth(frames: np.ndarray, weights: str | Path | None, device:
     return _rescale_to_working_distance(np.stack(out), working_distance)
 
 
+#: name -> back-end(scene, weights, device, working_distance) -> DepthPrior.
+DEPTH_BACKENDS: Registry[Callable[..., DepthPrior]] = Registry("depth method", ModelError)
+
+
+@DEPTH_BACKENDS.register("dataset")
+def _dataset_depth(scene, weights=None, device="cpu", working_distance=DEFAULT_WORKING_DISTANCE) -> DepthPrior:
+    if scene.depth is None:
+        raise DataError(f"{scene.source}: depth method 'dataset' but the scene has no depth maps")
+    return DepthPrior(scene.depth.astype(np.float32), "dataset", True)
+
+
+@DEPTH_BACKENDS.register("pi3")
+def _pi3(scene, weights=None, device="cpu", working_distance=DEFAULT_WORKING_DISTANCE) -> DepthPrior:
+    return DepthPrior(pi3_depth(scene.frames, weights, device, working_distance), "pi3", False)
+
+
+@DEPTH_BACKENDS.register("depth_anything")
+def _depth_anything(scene, weights=None, device="cpu", working_distance=DEFAULT_WORKING_DISTANCE) -> DepthPrior:
+    return DepthPrior(depth_anything_depth(scene.frames, weights, device, working_distance=working_distance),
+                      "depth_anything", False)
+
+
+@DEPTH_BACKENDS.register("fallback")
+def _fallback_depth(scene, weights=None, device="cpu", working_distance=DEFAULT_WORKING_DISTANCE) -> DepthPrior:
+    warnings.warn(f"{scene.source}: no depth maps and no depth model given; using the offline fallback "
+                  f"(a smooth bowl at {working_distance * 100:.0f} cm). Geometry will be plausible, not "
+                  "measured; supply depth/ or --depth-method pi3|depth_anything with --depth-weights.",
+                  stacklevel=3)
+    return DepthPrior(fallback_depth(scene.K, scene.width, scene.height, scene.num_frames, working_distance),
+                      "fallback", False)
+
+
 def estimate_depth(scene, method: str = "auto", weights: str | Path | None = None, device: str = "cpu",
                    working_distance: float = DEFAULT_WORKING_DISTANCE) -> DepthPrior:
     """Depth for every frame of ``scene`` (a :class:`~endogsim.io.scene.Scene`).
 
     Args:
         scene: the sequence (frames [T, H, W, 3], K, optional depth).
-        method: one of ``DEPTH_METHODS`` (see the module docstring).
+        method: "auto" or a registered back-end (:data:`DEPTH_BACKENDS`; see the module docstring).
         weights: local weights file for "pi3" / "depth_anything".
         device: torch device for the model adapters.
         working_distance: metres; centre depth of the fallback and median depth of model outputs.
     """
-    if method not in DEPTH_METHODS:
-        raise ModelError(f"unknown depth method {method!r}; use one of {', '.join(DEPTH_METHODS)}")
-    if method == "auto":
-        method = "dataset" if scene.depth is not None else "fallback"
-    if method == "dataset":
-        if scene.depth is None:
-            raise DataError(f"{scene.source}: depth method 'dataset' but the scene has no depth maps")
-        return DepthPrior(scene.depth.astype(np.float32), "dataset", True)
-    if method == "pi3":
-        return DepthPrior(pi3_depth(scene.frames, weights, device, working_distance), "pi3", False)
-    if method == "depth_anything":
-        return DepthPrior(depth_anything_depth(scene.frames, weights, device, working_distance=working_distance),
-                          "depth_anything", False)
-    warnings.warn(f"{scene.source}: no depth maps and no depth model given; using the offline fallback "
-                  f"(a smooth bowl at {working_distance * 100:.0f} cm). Geometry will be plausible, not "
-                  "measured; supply depth/ or --depth-method pi3|depth_anything with --depth-weights.",
-                  stacklevel=2)
-    return DepthPrior(fallback_depth(scene.K, scene.width, scene.height, scene.num_frames, working_distance),
-                      "fallback", False)
+    backend = DEPTH_BACKENDS.get(resolve_auto(method, scene.depth is not None))
+    return backend(scene, weights=weights, device=device, working_distance=working_distance)

@@ -1,7 +1,7 @@
 """Segmentation priors: which pixel belongs to which object (tissue ids, tool ids), per frame.
 
 Entry point: :func:`segment_scene` returns a :class:`Segmentation` (object-id masks + label table).
-Methods:
+Back-ends, registered by name in :data:`SEGMENTATION_BACKENDS`:
 
 * ``"dataset"``: the scene's own masks (EndoNeRF tool masks, CholecSeg8K classes, procedural ids).
 * ``"sam2"``: SAM 2 / Surgical-SAM-2 video propagation (``sam2`` package) with a *local* checkpoint and
@@ -24,7 +24,8 @@ from 1, as the EndoNeRF table (:mod:`endogsim.io.labels`).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +33,11 @@ import numpy as np
 from endogsim.errors import DataError, ModelError
 from endogsim.io.labels import endonerf_labels
 from endogsim.io.scene import ObjectLabel
+from endogsim.priors import resolve_auto
+from endogsim.registry import Registry
 
 __all__ = ["Segmentation", "segment_scene", "grey_tool_mask", "motion_residual", "GreyToolConfig",
-           "sam2_segmentation", "SEG_METHODS"]
-
-SEG_METHODS = ("auto", "dataset", "sam2", "fallback")
+           "sam2_segmentation", "SEGMENTATION_BACKENDS"]
 
 
 @dataclass
@@ -227,9 +228,9 @@ def sam2_segmentation(frames: np.ndarray, checkpoint: str | Path | None, model_c
         raise ModelError("SAM 2 segmentation needs --seg-config (the sam2 model config matching the checkpoint, "
                          "e.g. configs/sam2.1/sam2.1_hiera_s.yaml)")
     try:
-        import cv2
         import tempfile
 
+        import cv2
         import torch
         from sam2.build_sam import build_sam2_video_predictor  # type: ignore[import-not-found]
     except ImportError as exc:
@@ -257,21 +258,38 @@ def sam2_segmentation(frames: np.ndarray, checkpoint: str | Path | None, model_c
     return Segmentation(masks, labels, "sam2")
 
 
+#: name -> back-end(scene, checkpoint, model_config, device, fallback_config) -> Segmentation.
+SEGMENTATION_BACKENDS: Registry[Callable[..., Segmentation]] = Registry("segmentation method", ModelError)
+
+
+@SEGMENTATION_BACKENDS.register("dataset")
+def _dataset_masks(scene, checkpoint=None, model_config=None, device="cpu",
+                   fallback_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
+    if scene.object_masks is None:
+        raise DataError(f"{scene.source}: segmentation method 'dataset' but the scene has no masks")
+    return Segmentation(scene.object_masks.astype(np.int32), dict(scene.labels), "dataset")
+
+
+@SEGMENTATION_BACKENDS.register("sam2")
+def _sam2(scene, checkpoint=None, model_config=None, device="cpu",
+          fallback_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
+    return sam2_segmentation(scene.frames, checkpoint, model_config, device, fallback_config)
+
+
+@SEGMENTATION_BACKENDS.register("fallback")
+def _fallback_masks(scene, checkpoint=None, model_config=None, device="cpu",
+                    fallback_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
+    warnings.warn(f"{scene.source}: no masks and no segmentation model given; detecting instruments by "
+                  "colour (grey, low saturation). Expect errors on white fat, glare and smoke; supply masks/ "
+                  "or --seg-method sam2 with --seg-checkpoint.", stacklevel=3)
+    return _fallback(scene, fallback_config)
+
+
 def segment_scene(scene, method: str = "auto", checkpoint: str | Path | None = None,
                   model_config: str | None = None, device: str = "cpu",
                   fallback_config: GreyToolConfig = GreyToolConfig()) -> Segmentation:
-    """Object-id masks for every frame of ``scene`` (see the module docstring for ``method``)."""
-    if method not in SEG_METHODS:
-        raise ModelError(f"unknown segmentation method {method!r}; use one of {', '.join(SEG_METHODS)}")
-    if method == "auto":
-        method = "dataset" if scene.object_masks is not None else "fallback"
-    if method == "dataset":
-        if scene.object_masks is None:
-            raise DataError(f"{scene.source}: segmentation method 'dataset' but the scene has no masks")
-        return Segmentation(scene.object_masks.astype(np.int32), dict(scene.labels), "dataset")
-    if method == "sam2":
-        return sam2_segmentation(scene.frames, checkpoint, model_config, device, fallback_config)
-    warnings.warn(f"{scene.source}: no masks and no segmentation model given; detecting instruments by "
-                  "colour (grey, low saturation). Expect errors on white fat, glare and smoke; supply masks/ "
-                  "or --seg-method sam2 with --seg-checkpoint.", stacklevel=2)
-    return _fallback(scene, fallback_config)
+    """Object-id masks for every frame of ``scene``: "auto" or a registered back-end
+    (:data:`SEGMENTATION_BACKENDS`; see the module docstring)."""
+    backend = SEGMENTATION_BACKENDS.get(resolve_auto(method, scene.object_masks is not None))
+    return backend(scene, checkpoint=checkpoint, model_config=model_config, device=device,
+                   fallback_config=fallback_config)

@@ -1,7 +1,8 @@
 """Typed configuration of the 4D reconstruction, loadable from JSON or TOML.
 
 A config file holds any subset of the fields below (unknown keys are refused); the nested
-``[deformation]`` table sets :class:`~endogsim.recon.deformation.DeformationConfig`. Example TOML::
+``[deformation]`` table sets :class:`~endogsim.recon.deformation.DeformationConfig` and ``[flow]`` the
+:class:`~endogsim.priors.flow.FlowConfig` of the point tracks. Example TOML::
 
     iters = 2000
     resolution_scale = 0.5
@@ -22,9 +23,16 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Literal, get_args
 
 from endogsim.errors import DataError
+from endogsim.priors.depth import DEPTH_BACKENDS
+from endogsim.priors.flow import FlowConfig
+from endogsim.priors.segmentation import SEGMENTATION_BACKENDS
 from endogsim.recon.deformation import DeformationConfig
+
+#: "on", "off", or "auto" (decided from the data).
+Switch = Literal["auto", "on", "off"]
 
 __all__ = ["ReconConfig", "default_config", "load_config"]
 
@@ -48,13 +56,14 @@ class ReconConfig:
             from :func:`endogsim.priors.camera.estimate_camera_rotations`.
         exposure: learn a per-frame colour gain and bias (:mod:`endogsim.recon.exposure`: the endoscope's
             light moves with it) "on", "off", or "auto": on exactly when the camera moves.
-        flow_method / flow_weights: optical flow for the point tracks (:mod:`endogsim.priors.flow`: "dis",
-            offline, or "raft" with a local weights file); "none" trains without tracks.
+        point_tracks: start the deformation from point tracks (chained optical flow; False: train without).
+        flow: the optical flow of the point tracks (:class:`~endogsim.priors.flow.FlowConfig`: "dis",
+            offline, or "raft" with a local weights file).
     Schedule:
         iters: total iterations (coarse + deformation).
         coarse_fraction: share of ``iters`` spent on Endo-4DGS's static coarse stage (default 0: with point
             tracks the warm-up starts the deformation stage better than a static fit, which blurs whatever
-            moves; use e.g. 0.05 with ``flow_method="none"``).
+            moves; use e.g. 0.05 with ``point_tracks=False``).
         seed: RNG seed (frame order, initial planes).
         checkpoint_every: iterations between checkpoints (resume after an interruption).
         eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
@@ -116,10 +125,10 @@ class ReconConfig:
     seg_config: str | None = None
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
-    camera_motion: str = "auto"
-    exposure: str = "auto"
-    flow_method: str = "dis"
-    flow_weights: str | None = None
+    camera_motion: Switch = "auto"
+    exposure: Switch = "auto"
+    point_tracks: bool = True
+    flow: FlowConfig = field(default_factory=FlowConfig)
 
     iters: int = 2000
     coarse_fraction: float = 0.0
@@ -172,14 +181,22 @@ class ReconConfig:
 
     test_pose_steps: int = 100
 
-    device: str = "auto"
-    backend: str = "auto"
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    backend: Literal["auto", "torch", "warp", "gsplat"] = "auto"
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def validate(self) -> "ReconConfig":
+    def __post_init__(self) -> None:
+        if isinstance(self.flow, dict):
+            self.flow = FlowConfig(**self.flow)
+        if isinstance(self.deformation, dict):
+            self.deformation = DeformationConfig(**self.deformation)
+        if self.depth_method != "auto":
+            DEPTH_BACKENDS.get(self.depth_method)
+        if self.seg_method != "auto":
+            SEGMENTATION_BACKENDS.get(self.seg_method)
         if not 0 < self.resolution_scale <= 4:
             raise DataError(f"resolution_scale {self.resolution_scale} must be in (0, 4]")
         if self.iters < 1:
@@ -198,14 +215,10 @@ class ReconConfig:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
         if self.time_budget_s is not None and self.time_budget_s <= 0:
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
-        if self.flow_method not in ("dis", "raft", "none"):
-            raise DataError(f"flow_method {self.flow_method!r} must be 'dis', 'raft' or 'none'")
-        for name in ("camera_motion", "exposure"):
-            if getattr(self, name) not in ("auto", "on", "off"):
-                raise DataError(f"{name} {getattr(self, name)!r} must be 'auto', 'on' or 'off'")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise DataError(f"device {self.device!r} must be 'auto', 'cpu' or 'cuda'")
-        return self
+        for name, choices in (("camera_motion", get_args(Switch)), ("exposure", get_args(Switch)),
+                              ("device", ("auto", "cpu", "cuda")), ("backend", ("auto", "torch", "warp", "gsplat"))):
+            if getattr(self, name) not in choices:
+                raise DataError(f"{name} {getattr(self, name)!r} must be one of {', '.join(choices)}")
 
     @staticmethod
     def from_dict(data: dict, base: "ReconConfig | None" = None, source: str = "config") -> "ReconConfig":
@@ -214,7 +227,8 @@ class ReconConfig:
         unknown = sorted(set(data) - names)
         if unknown:
             raise DataError(f"{source}: unknown reconstruction option(s) {unknown}")
-        values = {k: v for k, v in data.items() if k != "deformation"}
+        values = {k: v for k, v in data.items() if k not in ("deformation", "flow")}
+        flow = {**asdict(cfg.flow), **data.get("flow", {})}
         deform = asdict(cfg.deformation)
         if "deformation" in data:
             dn = {f.name for f in fields(DeformationConfig)}
@@ -226,7 +240,8 @@ class ReconConfig:
         deform["multires"] = tuple(deform["multires"])
         merged = {**asdict(cfg), **values}
         merged["deformation"] = DeformationConfig(**deform)
-        return ReconConfig(**merged).validate()
+        merged["flow"] = FlowConfig(**flow)
+        return ReconConfig(**merged)
 
 
 def default_config(device: str = "cpu") -> ReconConfig:
@@ -260,4 +275,4 @@ def load_config(path: str | Path | None = None, defaults_for: str = "cpu", **ove
             raise DataError(f"{path}: config must be a table/object of options")
         cfg = ReconConfig.from_dict(data, cfg, str(path))
     over = {k: v for k, v in overrides.items() if v is not None}
-    return ReconConfig.from_dict(over, cfg, "command line") if over else cfg.validate()
+    return ReconConfig.from_dict(over, cfg, "command line") if over else cfg

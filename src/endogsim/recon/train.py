@@ -40,7 +40,6 @@ the priors of the initialisation, the tracking and the warm-up.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -55,13 +54,13 @@ from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.gaussians.render import render_gaussians
+from endogsim.io.atomic import save_npz_atomic, save_torch_atomic, write_json_atomic
 from endogsim.recon.camera_motion import CameraMotion, refine_pose
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
 from endogsim.recon.exposure import FrameExposure
 from endogsim.recon.init import initial_gaussians
-from endogsim.io.atomic import save_npz_atomic, save_torch_atomic, write_json_atomic
 from endogsim.recon.model import ReconResult, compose_at
 from endogsim.recon.params import GaussianParams, log_linear_lr
 from endogsim.recon.tools import ToolMotion
@@ -167,7 +166,7 @@ class Trainer:
             from endogsim.priors.camera import estimate_camera_rotations
 
             rotations = estimate_camera_rotations(prep.scene.frames, prep.tissue, prep.scene.K, prep.train)
-        if c.flow_method != "none":
+        if c.point_tracks:
             from endogsim.priors.tracks import consecutive_flows
 
             flows = consecutive_flows(prep.scene.frames, prep.train, self._flow_estimator())
@@ -184,7 +183,7 @@ class Trainer:
                           "tool_gaussians": len(ini.tools), "tool_ids": ini.tool_ids, "tool_ref_frames": ini.ref_frames}
         self.track_seeds = None
         track_ids = None
-        if c.flow_method != "none":
+        if c.point_tracks:
             # one track per initial tissue Gaussian, from the pixel it was back-projected from
             self.track_seeds = {"pixels": torch.as_tensor(ini.tissue_pixels), "frames": torch.as_tensor(ini.tissue_frames)}
             track_ids = torch.arange(len(ini.tissue))
@@ -268,11 +267,9 @@ class Trainer:
 
     # ------------------------------------------------------------------ point tracks
     def _flow_estimator(self):
-        from endogsim.priors.flow import get_flow_estimator
+        from endogsim.priors.flow import flow_estimator
 
-        c = self.cfg
-        return get_flow_estimator(c.flow_method, c.flow_weights,
-                                  **({"device": str(self.device)} if c.flow_method == "raft" else {}))
+        return flow_estimator(self.cfg.flow, device=str(self.device))
 
     def _build_tracks(self, flows=None) -> None:
         """Track every seeded tissue point through the training frames (:func:`~endogsim.priors.tracks.track_points`);
@@ -657,7 +654,7 @@ class Trainer:
             "num_tool_gaussians": 0 if tools is None else len(tools),
             "resolution": [sc.width, sc.height], "device": str(self.device),
             "depth_source": self.prep.depth_source, "segmentation_source": self.prep.seg_source,
-            "track_source": self.cfg.flow_method if self.tracks is not None else "none",
+            "track_source": self.cfg.flow.method if self.tracks is not None else "none",
             "camera_motion": self.camera_motion is not None,
             "tissue_pixel_fraction": float(self.prep.tissue[self.prep.test].mean()) if self.prep.test else None,
             "repeated_frames": [] if self.prep.repeated is None else np.nonzero(self.prep.repeated)[0].tolist(),
@@ -695,7 +692,7 @@ def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | Non
         resume: continue from ``out_dir/checkpoint.pt`` when it exists.
         stop_after: test hook: stop after this many iterations with a checkpoint (raises Interrupted).
     """
-    cfg = (config or ReconConfig()).validate()
+    cfg = config or ReconConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings():

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from endogsim.evaluate.flow_metrics import epe
-from endogsim.priors.flow import get_flow_estimator
+from endogsim.priors.flow import FlowConfig, flow_estimator
 
 __all__ = ["read_scene_flow", "estimator_epe", "iter_dis_epe", "dis_epe_table"]
 
@@ -35,7 +35,7 @@ def read_scene_flow(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 MOVING_PX = 0.5  # ground-truth flow (pixels per frame) above which a tissue pixel counts as moving
 
 
-def estimator_epe(folder: Path, estimator: str = "dis", weights: str | None = None, **kwargs) -> dict:
+def estimator_epe(folder: Path, estimator: str = "dis", weights: str | None = None) -> dict:
     """EPE (pixels) of ``estimator`` against a scene folder's ground-truth flow over all consecutive pairs.
 
     Returns ``epe`` over valid pixels (rendered alpha > 0.95), ``epe_tissue`` over valid non-tool pixels,
@@ -47,7 +47,7 @@ def estimator_epe(folder: Path, estimator: str = "dis", weights: str | None = No
     import cv2
 
     frames, gt, valid = read_scene_flow(folder)
-    est = get_flow_estimator(estimator, weights=weights, **kwargs)
+    est = flow_estimator(FlowConfig(estimator, weights))
     pred = est.estimate_sequence(frames)
     tool = np.stack([cv2.imread(str(Path(folder) / "masks" / f"frame-{t:06d}.mask.png"), cv2.IMREAD_GRAYSCALE) > 127
                      for t in range(len(gt))])
@@ -66,9 +66,9 @@ def estimator_epe(folder: Path, estimator: str = "dis", weights: str | None = No
 
 
 def iter_dis_epe(scenes: list[str], work: Path, seed: int = 0, frames: int | None = None,
-                 scale: float | None = None, preset: str = "medium") -> Iterator[dict]:
+                 scale: float | None = None, estimator: str = "dis") -> Iterator[dict]:
     """Synthesize each scene into ``work``/NAME (reusing an existing folder; ``gen_s`` is then None) and
-    yield DIS's EPE (:func:`estimator_epe`) scene by scene."""
+    yield the EPE of a registered flow estimator (:func:`estimator_epe`) scene by scene."""
     from endogsim.synth.generate import synthesize
 
     for name in scenes:
@@ -78,7 +78,7 @@ def iter_dis_epe(scenes: list[str], work: Path, seed: int = 0, frames: int | Non
             t0 = time.perf_counter()
             synthesize(name, folder, seed=seed, frames=frames, scale=scale)
             gen_s = time.perf_counter() - t0
-        yield {"scene": name, "gen_s": gen_s, **estimator_epe(folder, "dis", preset=preset)}
+        yield {"scene": name, "gen_s": gen_s, **estimator_epe(folder, estimator)}
 
 
 def dis_epe_table(*args, **kwargs) -> list[dict]:
@@ -94,12 +94,12 @@ def main() -> None:  # pragma: no cover - script
     ap.add_argument("--work", type=Path, default=Path("bench_synth"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=None)
-    ap.add_argument("--preset", default="medium")
+    ap.add_argument("--estimator", default="dis", help="a registered flow estimator (dis, dis_fine, raft)")
     a = ap.parse_args()
     print("| scene | gen (s) | DIS EPE all | DIS EPE tissue | DIS EPE moving | zero-flow EPE all | "
           "mean GT all / tissue / moving | peak GT tissue | moving % | pairs |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for r in iter_dis_epe(a.scenes, a.work, a.seed, a.frames, preset=a.preset):
+    for r in iter_dis_epe(a.scenes, a.work, a.seed, a.frames, estimator=a.estimator):
         gen = "reused" if r["gen_s"] is None else f"{r['gen_s']:.0f}"
         print(f"| {r['scene']} | {gen} | {r['epe']:.3f} | {r['epe_tissue']:.3f} | {r['epe_moving']:.3f} | "
               f"{r['zero_epe']:.3f} | {r['mean_gt_px']:.2f} / {r['mean_gt_tissue_px']:.2f} / {r['mean_gt_moving_px']:.2f} | "

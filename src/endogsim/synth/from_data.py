@@ -24,15 +24,24 @@ import torch
 from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
-from endogsim.io.labels import CHOLECSEG8K_LABELS, CHOLECSEG8K_NON_OBJECTS, CHOLECSEG8K_UNLABELLED_VALUE, UNLABELLED
 from endogsim.io.images import resize
+from endogsim.io.labels import (
+    CHOLECSEG8K_LABELS,
+    CHOLECSEG8K_NON_OBJECTS,
+    CHOLECSEG8K_UNLABELLED_VALUE,
+    UNLABELLED,
+)
 from endogsim.materials.prior import prior_entry
-from endogsim.priors.depth import fallback_depth
-from endogsim.synth import procedural as proc
 from endogsim.physics import MPMConfig, max_stable_E
+from endogsim.priors.depth import fallback_depth
 from endogsim.scene.motion import tool_capsule, tool_offsets
-from endogsim.synth.scenes import BuiltScene, ground_truth_and_identification, tissue_from_surface
 from endogsim.scene.schema import SceneObject
+from endogsim.synth import procedural as proc
+from endogsim.synth.scenes import (
+    BuiltScene,
+    ground_truth_and_identification,
+    tissue_from_surface,
+)
 from endogsim.synth.suite import load_suite
 
 __all__ = ["build_from_data", "CHOLECSEG_CLASSES", "read_first_frame"]

@@ -49,8 +49,8 @@ from endogsim.physics import (
     drive_gaussians,
     simulate,
 )
-from endogsim.synth.scenes import BuiltScene, build_procedural
 from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
+from endogsim.synth.scenes import BuiltScene, build_procedural
 from endogsim.synth.suite import GENERATOR_REVISION
 
 __all__ = ["synthesize", "ground_truth_problem", "simulate_built", "render_built", "write_scene_folder", "DEPTH_SCALE"]
@@ -70,7 +70,9 @@ def ground_truth_problem(b: BuiltScene) -> tuple[Particles, ObjectMaterials, Sce
     the scenario (sim box, gravity, anchored particles, capsule tools as point colliders) and the
     ``ground_truth`` numerics.
     """
-    from endogsim.physics import capsule_collider_points  # the same covering as identification
+    from endogsim.physics import (
+        capsule_collider_points,  # the same covering as identification
+    )
 
     gt = b.ground_truth
     particles = Particles(torch.as_tensor(b.particles, dtype=torch.float32),

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from endogsim.gaussians.camera import Camera
-from endogsim.gaussians.model import Gaussians, rotmat_to_quat, rgb_to_sh_dc
+from endogsim.gaussians.model import Gaussians, rgb_to_sh_dc, rotmat_to_quat
 
 __all__ = [
     "endoscope_camera", "fractal_noise", "mucosa_colors", "tissue_surface",

@@ -25,9 +25,9 @@ from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.physics import MPMConfig, extrude_along_rays, p_wave_speed, plan_substeps
-from endogsim.synth import procedural as proc
 from endogsim.scene.motion import tool_capsule, tool_offsets, tool_speed
 from endogsim.scene.schema import SceneObject, SimSettings, ToolCapsule
+from endogsim.synth import procedural as proc
 from endogsim.synth.suite import scene_spec
 
 __all__ = ["BuiltScene", "build_procedural", "sim_settings", "tissue_from_surface"]
