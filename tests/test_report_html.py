@@ -44,7 +44,8 @@ class _Checker(HTMLParser):
 def run_with_simulation(tmp_path_factory):
     """A tiny identification run (1 iteration, with video) and one simulated interaction."""
     from endogsim.identify import IdentifyConfig, run_identify
-    from endogsim.pipeline.simulate import load_interaction, simulate_interaction
+    from endogsim.pipeline.interaction import load_interaction
+    from endogsim.pipeline.simulate import simulate_interaction
     from endogsim.synth import synthesize
 
     scene = tmp_path_factory.getbasetemp() / "shared_tiny_f4"

@@ -10,13 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 from endogsim.errors import DataError, MaterialError, SimulationError
-from endogsim.pipeline.simulate import (
-    builtin_interactions,
-    covariance_to_scale_rot,
-    load_interaction,
-    resolve_scene,
-    simulate_interaction,
-)
+from endogsim.pipeline.interaction import builtin_interactions, load_interaction
+from endogsim.pipeline.simulate import covariance_to_scale_rot, resolve_scene, simulate_interaction
 
 FRAMES = 4
 

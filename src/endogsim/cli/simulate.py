@@ -31,7 +31,8 @@ def register(app: typer.Typer) -> None:
         """Simulate a new interaction (tool trajectory, force on a region, or grasp-and-pull) on a scene with
         given materials; writes simulation.mp4, frames/*.png, ply/*.ply and summary.json."""
         from endogsim.cli.common import console, print_table
-        from endogsim.pipeline.simulate import load_interaction, simulate_interaction
+        from endogsim.pipeline.interaction import load_interaction
+        from endogsim.pipeline.simulate import simulate_interaction
 
         inter = load_interaction(interaction)
         if frames is not None:

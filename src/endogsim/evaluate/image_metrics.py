@@ -26,7 +26,13 @@ import torch.nn.functional as F
 
 from endogsim.errors import DataError
 
-__all__ = ["mse", "psnr", "psnr_endonerf", "ssim", "ssim_map", "gaussian_window"]
+__all__ = ["mse", "masked_l1", "psnr", "psnr_endonerf", "ssim", "ssim_map", "gaussian_window"]
+
+
+def masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error of RGB images ``pred``, ``gt`` [H, W, 3] over the pixels of ``mask`` [H, W] (the
+    reconstruction's photometric loss)."""
+    return ((pred - gt).abs() * mask[..., None]).sum() / (mask.sum() * 3).clamp_min(1.0)
 
 
 def _as_batch(img: torch.Tensor) -> torch.Tensor:

@@ -40,22 +40,19 @@ the priors of the initialisation, the tracking and the warm-up.
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from endogsim.errors import DataError
-from endogsim.evaluate.image_metrics import psnr, psnr_endonerf, ssim, ssim_map
+from endogsim.evaluate.image_metrics import masked_l1, ssim_map
 from endogsim.gaussians.camera import Camera
-from endogsim.gaussians.model import Gaussians
 from endogsim.gaussians.render import render_gaussians
-from endogsim.io.atomic import save_npz_atomic, save_torch_atomic, write_json_atomic
-from endogsim.recon.camera_motion import CameraMotion, refine_pose
+from endogsim.io.atomic import save_torch_atomic, write_json_atomic
+from endogsim.recon.camera_motion import CameraMotion
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
 from endogsim.recon.deformation import DeformationField
@@ -80,10 +77,6 @@ def _resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise DataError("device 'cuda' requested but CUDA is not available")
     return torch.device(name)
-
-
-def _masked_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    return ((pred - gt).abs() * mask[..., None]).sum() / (mask.sum() * 3).clamp_min(1.0)
 
 
 def _wants_exposure(mode: str, moving_camera: bool) -> bool:
@@ -403,7 +396,7 @@ class Trainer:
         if means2d is not None and means2d.requires_grad and out.meta.get("backend") in ("torch", "warp"):
             means2d.retain_grad()
         rgb = self.expose(out.rgb, t)
-        loss = (1 - c.lambda_dssim) * _masked_l1(rgb, gt, m)
+        loss = (1 - c.lambda_dssim) * masked_l1(rgb, gt, m)
         if c.lambda_dssim > 0:
             filled = rgb * m[..., None] + gt * (1 - m[..., None])
             loss = loss + c.lambda_dssim * (1 - ssim_map(filled, gt).mean())
@@ -427,7 +420,7 @@ class Trainer:
             tout = render_gaussians(tg, self.view(t), backend=c.backend)
             tm = self.tool_mask[t]
             comp = self.expose(tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach(), t)
-            tloss = _masked_l1(comp, gt, tm) + c.lambda_tool_alpha * (tout.alpha - tm).abs().mean()
+            tloss = masked_l1(comp, gt, tm) + c.lambda_tool_alpha * (tout.alpha - tm).abs().mean()
             tloss = tloss + c.lambda_pose_smooth * self.motion.smoothness(self.extent)
             tloss.backward()
             self.tools.step()
@@ -517,163 +510,17 @@ class Trainer:
         return compose_at(self.tissue.gaussians().detach(), self.tools.gaussians().detach() if self.tools else None,
                           self.deformation, self.motion, float(self.times[frame]), frame, include_tools)
 
-    def _fill_untrained_cameras(self) -> None:
-        """Test frames are never trained: their camera poses and exposures come from the neighbouring
-        training frames."""
-        trained = torch.zeros(len(self.times), dtype=torch.bool)
-        trained[self.prep.train] = True
-        for part in (self.camera_motion, self.exposure):
-            if part is not None:
-                part.interpolate_missing(trained.to(self.device), self.times)
-
-    def registered_view(self, frame: int, g: Gaussians) -> tuple[Camera, torch.Tensor]:
-        """``frame``'s camera after refining its pose alone against the frame's tissue pixels with the model
-        frozen (:func:`~endogsim.recon.camera_motion.refine_pose`), and the correction's [2] (radians,
-        metres). ``g``: the tissue Gaussians at ``frame`` (:meth:`gaussians_at`, without tools)."""
-        gt, m = self.frames[frame], self.tissue_mask[frame]
-
-        def loss(viewmat: torch.Tensor) -> torch.Tensor:
-            cam = Camera(self.camera.K, self.camera.width, self.camera.height, viewmat)
-            return _masked_l1(self.expose(render_gaussians(g, cam, backend=self.cfg.backend).rgb, frame), gt, m)
-
-        with torch.enable_grad():
-            viewmat, size = refine_pose(loss, self.view(frame).viewmat, self.extent, self.cfg.test_pose_steps)
-        return Camera(self.camera.K, self.camera.width, self.camera.height, viewmat), size
-
-    @torch.no_grad()
     def evaluate(self, frames: list[int], render_dir: Path | None = None, register_poses: bool = False) -> dict:
-        """Test metrics on ``frames`` (tissue render vs image); writes PNG renders when ``render_dir``.
+        """Test metrics on ``frames`` (:func:`endogsim.recon.evaluation.evaluate_frames`)."""
+        from endogsim.recon.evaluation import evaluate_frames
 
-        A moving endoscope has no pose for a held-out frame but the interpolation of its training
-        neighbours'. With ``register_poses`` (and ``test_pose_steps`` > 0) each test frame's pose is then
-        registered to the frame with the model frozen (:meth:`registered_view`) and kept in the camera
-        motion; every metric and render uses it. The metrics from the interpolated poses stay under
-        ``psnr_masked_interpolated_pose`` and ``ssim_masked_interpolated_pose``, and ``pose_alignment``
-        lists each correction. Without registration (or with a fixed camera) the interpolated pose is
-        the test pose.
-        """
-        from endogsim.io.video_writer import write_frames_png
-
-        self._fill_untrained_cameras()
-        res = {"psnr_masked": [], "psnr_endonerf": [], "ssim_masked": [], "ssim_endonerf": [], "psnr_full": []}
-        register_poses = register_poses and self.camera_motion is not None and self.cfg.test_pose_steps > 0
-        if register_poses:
-            res |= {"psnr_masked_interpolated_pose": [], "ssim_masked_interpolated_pose": []}
-            corrections = []
-        renders, full = [], []
-        for t in frames:
-            tissue = self.gaussians_at(t, False)
-            cam = self.view(t)
-            gt = self.frames[t]
-            m, tool = self.tissue_mask[t], self.tool_mask[t]
-            if register_poses:
-                interpolated = self.expose(render_gaussians(tissue, cam, backend=self.cfg.backend).rgb, t).clamp(0, 1)
-                res["psnr_masked_interpolated_pose"].append(psnr(interpolated, gt, m))
-                res["ssim_masked_interpolated_pose"].append(ssim(interpolated, gt, m))
-                cam, size = self.registered_view(t, tissue)
-                self.camera_motion.set_viewmat(t, cam.viewmat)
-                corrections.append({"frame": t, "rotation_deg": round(math.degrees(float(size[0])), 4),
-                                    "translation_m": round(float(size[1]), 7)})
-            pred = self.expose(render_gaussians(tissue, cam, backend=self.cfg.backend).rgb, t).clamp(0, 1)
-            res["psnr_masked"].append(psnr(pred, gt, m))
-            res["ssim_masked"].append(ssim(pred, gt, m))
-            res["psnr_endonerf"].append(psnr_endonerf(pred, gt, tool))
-            keep = (1 - tool)[..., None]
-            res["ssim_endonerf"].append(ssim(pred * keep, gt * keep))
-            renders.append(pred.cpu().numpy())
-            whole = pred
-            if self.tools is not None:
-                whole = render_gaussians(self.gaussians_at(t, True), cam, backend=self.cfg.backend).rgb
-                whole = self.expose(whole, t).clamp(0, 1)
-                full.append(whole.cpu().numpy())
-            valid = ((self.tissue_mask[t] + tool) > 0).float()  # leave out background / unlabelled
-            res["psnr_full"].append(psnr(whole, gt, valid))
-        if render_dir is not None:
-            for sub, imgs in (("test", renders), ("test_full", full)):
-                for t, img in zip(frames, imgs):
-                    write_frames_png(img[None], render_dir / sub, pattern=f"frame_{t:04d}.png")
-        out = {k: float(np.mean(v)) if v else float("nan") for k, v in res.items()} | {"per_frame": res}
-        if register_poses:
-            out["pose_alignment"] = corrections
-        return out
+        return evaluate_frames(self, frames, render_dir, register_poses)
 
     def export(self) -> dict:
-        """Write every run output (see :mod:`endogsim.recon.model`) and return the metrics."""
-        from endogsim.gaussians.ply import write_ply
+        """Write every run output (:func:`endogsim.recon.export.export_run`) and return the metrics."""
+        from endogsim.recon.export import export_run
 
-        out, sc = self.out, self.prep.scene
-        if self.motion is not None:
-            trained = self.tool_visible.clone()
-            for t in self.prep.test:
-                trained[:, t] = False
-            self.motion.interpolate_missing(trained, self.times)
-        # first, as it fixes the test frames' camera poses that the files below hold
-        ev = self.evaluate(self.prep.test, out / "renders", register_poses=True)
-        tissue = self.tissue.gaussians().detach().to("cpu")
-        tools = self.tools.gaussians().detach().to("cpu") if self.tools is not None else None
-        canonical = Gaussians.concat([tissue, tools]) if tools is not None else tissue
-        write_ply(canonical, out / "canonical.ply")
-        write_ply(self.gaussians_at(0, True).to("cpu"), out / "frame0.ply")
-        labels = {str(i): {"name": lab.name, "is_tool": lab.is_tool, "class": lab.klass} for i, lab in sc.labels.items()}
-        save_torch_atomic({
-            "deformation": {**self.deformation.export(),
-                            "state_dict": {k: v.cpu() for k, v in self.deformation.state_dict().items()}},
-            "tool_motion": None if self.motion is None else {
-                "tool_ids": self.motion.tool_ids, "state_dict": {k: v.cpu() for k, v in self.motion.state_dict().items()}},
-            "num_tissue": len(tissue), "times": self.times.cpu(), "labels": labels,
-            "viewmats": None if self.camera_motion is None else self.camera_motion.transforms()[0].detach().cpu(),
-            "exposure": None if self.exposure is None
-            else {k: v.detach().cpu() for k, v in self.exposure.state_dict().items()},
-            "camera": {"K": self.camera.K.cpu().tolist(), "width": self.camera.width, "height": self.camera.height},
-            "field_of_view": None if self.prep.field_of_view is None else torch.as_tensor(self.prep.field_of_view),
-        }, out / "deformation.pt")
-        write_json_atomic(out / "objects.json", labels)
-        traj = {}
-        if self.motion is not None:
-            M = self.motion.transforms().detach().cpu().numpy()
-            for k, oid in enumerate(self.motion.tool_ids):
-                traj[str(oid)] = {"name": sc.name_of(oid), "reference_frame": self.init_info["tool_ref_frames"][k],
-                                  "transforms": M[k].tolist()}
-            arrays = {f"object_{oid}": M[k] for k, oid in enumerate(self.motion.tool_ids)}
-        else:
-            arrays = {}
-        write_json_atomic(out / "tool_trajectories.json", {
-            "convention": "per tool: [T, 4, 4] rigid transforms, canonical Gaussians -> frame t, world = camera "
-                          "frame of frame 0 (of the fixed endoscope, or of a moving one: see camera_poses), metres",
-            "camera_poses": None if self.camera_motion is None
-            else self.camera_motion.transforms()[0].detach().cpu().tolist(), "times": self.times.tolist(), "tools": traj})
-        save_npz_atomic(out / "tool_trajectories.npz", times=self.times.numpy(), **arrays)
-
-        per_frame = ev.pop("per_frame")
-        metrics = {
-            **ev, "ssim": ev["ssim_masked"], "test_frames": self.prep.test, "per_frame": per_frame,
-            "train_frames": len(self.prep.train),
-            "training_seconds": round(self.elapsed, 2), "iterations": self.iteration,
-            "stopped_by_time_budget": self.stopped_by_time_budget,
-            "num_gaussians": len(canonical), "num_tissue_gaussians": len(tissue),
-            "num_tool_gaussians": 0 if tools is None else len(tools),
-            "resolution": [sc.width, sc.height], "device": str(self.device),
-            "depth_source": self.prep.depth_source, "segmentation_source": self.prep.seg_source,
-            "track_source": self.cfg.flow.method if self.tracks is not None else "none",
-            "camera_motion": self.camera_motion is not None,
-            "tissue_pixel_fraction": float(self.prep.tissue[self.prep.test].mean()) if self.prep.test else None,
-            "repeated_frames": [] if self.prep.repeated is None else np.nonzero(self.prep.repeated)[0].tolist(),
-            "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
-                         "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
-                         "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
-                         "tissue_pixel_fraction": "share of the test frames' pixels the masked metrics cover",
-                         "repeated_frames": "frames showing the same instant as the one before (frame-rate "
-                                            "conversion), found from the training frames; they share its time",
-                         "track_source": "optical flow of the point tracks (training frames only)",
-                         "pose": "moving endoscope: each test frame's pose is the interpolation of its training "
-                                 "neighbours' poses registered to the test frame with the model frozen (BARF's "
-                                 "and NoPe-NeRF's test-time pose optimisation; pose_alignment gives each "
-                                 "correction); *_interpolated_pose: from the interpolation alone, as is history",
-                         "render": "tissue model only (tools are a separate model), except psnr_full"},
-            "init": self.init_info, "history": self.history,
-        }
-        write_json_atomic(out / "metrics.json", metrics)
-        return metrics
+        return export_run(self)
 
 
 def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | None = None, *,
