@@ -154,3 +154,14 @@ def test_a_particle_of_a_rigid_object_is_refused():
                                           E=2e11, nu=0.3, density=7850.0)])
     with pytest.raises(MaterialError, match="rigid or fluid"):
         simulate(a, field.simulator_materials(), Scenario(BOX), MPMConfig(grid_res=32), 2)
+
+
+def test_stvk_uniaxial_stretch_matches_the_closed_form():
+    # F = diag(l, 1, 1): Green strain e = (l^2 - 1) / 2 along x, S_xx = (2 mu + lambda) e, S_yy = lambda e,
+    # tau = F S F^T: tau_xx = l^2 S_xx, tau_yy = tau_zz = lambda e.
+    mu, lam, stretch = 3.0e3, 9.0e3, 1.2
+    F = torch.diag(torch.tensor([stretch, 1.0, 1.0], dtype=torch.float64))[None]
+    tau = stress_torch(torch.tensor([model_id("stvk")]), F, torch.tensor([mu]).double(), torch.tensor([lam]).double())[0]
+    e = (stretch ** 2 - 1) / 2
+    expect = torch.diag(torch.tensor([stretch ** 2 * (2 * mu + lam) * e, lam * e, lam * e], dtype=torch.float64))
+    assert torch.allclose(tau, expect, rtol=1e-12)

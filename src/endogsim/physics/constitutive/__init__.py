@@ -76,4 +76,4 @@ def stress_torch(model_ids: torch.Tensor, F: torch.Tensor, mu: torch.Tensor, lam
 
 
 # Built-in models, in id order.
-from endogsim.physics.constitutive import fixed_corotated, neo_hookean  # noqa: E402,F401
+from endogsim.physics.constitutive import fixed_corotated, neo_hookean, stvk  # noqa: E402,F401
