@@ -14,6 +14,7 @@ from endogsim.materials.field import MaterialField, MaterialRecord
 from endogsim.physics import Anchor, MPMConfig, ObjectMaterials, Particles, RigidCollider, Scenario, SimBox, simulate
 from endogsim.physics import kernels as K
 from endogsim.physics.constitutive import MODELS, model_id, model_names, stress_torch
+from endogsim.physics.polar import polar_rotation
 from endogsim.warp_runtime import init_warp
 
 BOX = SimBox((0.0, 0.0, 0.0), 0.1)
@@ -23,7 +24,10 @@ BOX = SimBox((0.0, 0.0, 0.0), 0.1)
 def _stress(model: wp.array(dtype=wp.int32), F: wp.array(dtype=wp.mat33), mu: float, lam: float,
             out: wp.array(dtype=wp.mat33)):
     i = wp.tid()
-    out[i] = K.kirchhoff_stress(model[i], F[i], mu, lam)
+    R = wp.identity(n=3, dtype=float)
+    if K.uses_rotation(model[i]) != 0:
+        R = polar_rotation(F[i])
+    out[i] = K.kirchhoff_stress(model[i], F[i], R, mu, lam)
 
 
 def _random_F(n: int, seed: int = 0) -> torch.Tensor:

@@ -60,6 +60,11 @@ class Camera:
         return Camera(self.K.to(device), self.width, self.height, self.viewmat.to(device))
 
     @staticmethod
+    def from_intrinsics(K, width: int, height: int) -> "Camera":
+        """A fixed camera (world = camera frame) with intrinsics ``K`` [3, 3] (pixels, any array type)."""
+        return Camera(torch.as_tensor(K, dtype=torch.float32).reshape(3, 3).clone(), int(width), int(height))
+
+    @staticmethod
     def from_focal(focal: float, width: int, height: int) -> "Camera":
         """A camera with square pixels and the principal point at the image centre."""
         K = torch.tensor([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])

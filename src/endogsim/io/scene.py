@@ -91,14 +91,6 @@ class Scene:
     def name_of(self, object_id: int) -> str:
         return self.labels[object_id].name if object_id in self.labels else f"object_{object_id}"
 
-    def camera(self):
-        """The scene's :class:`~endogsim.gaussians.camera.Camera` (torch tensors)."""
-        import torch
-
-        from endogsim.gaussians.camera import Camera
-
-        return Camera(torch.as_tensor(self.K, dtype=torch.float32), self.width, self.height)
-
     @property
     def source_path(self) -> Path:
         return Path(self.source)

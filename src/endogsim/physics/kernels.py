@@ -25,7 +25,7 @@ from __future__ import annotations
 import warp as wp
 
 from endogsim.physics.constitutive import MODELS
-from endogsim.physics.polar import proper_svd_rotations
+from endogsim.physics.polar import polar_rotation, proper_svd_rotations
 
 # Per-node boundary condition kinds.
 BC_FREE = 0
@@ -136,12 +136,23 @@ def lame(E: float, nu: float):
 
 
 @wp.func
-def kirchhoff_stress(model: int, F: wp.mat33, mu: float, lam: float):
-    """Kirchhoff stress tau = P F^T of the registered constitutive model ``model`` (sim-unit moduli)."""
+def uses_rotation(model: int):
+    """1 when the registered constitutive model ``model`` reads the polar rotation of F, else 0."""
+    r = int(0)
+    for i in range(wp.static(len(MODELS))):
+        if model == i:
+            r = wp.static(int(MODELS[i].uses_rotation))
+    return r
+
+
+@wp.func
+def kirchhoff_stress(model: int, F: wp.mat33, R: wp.mat33, mu: float, lam: float):
+    """Kirchhoff stress tau = P F^T of the registered constitutive model ``model`` (sim-unit moduli); R is
+    the polar rotation of F for models that use it (:func:`uses_rotation`), else anything."""
     tau = wp.mat33(0.0)
     for i in range(wp.static(len(MODELS))):
         if model == i:
-            tau = wp.static(MODELS[i].stress)(F, mu, lam)
+            tau = wp.static(MODELS[i].stress)(F, R, mu, lam)
     return tau
 
 
@@ -222,7 +233,12 @@ def p2g(
     fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
 
-    tau = kirchhoff_stress(mats.model[o], state.F[p], ml[0], ml[1])
+    model = mats.model[o]
+    Fp = state.F[p]
+    R = wp.identity(n=3, dtype=float)
+    if uses_rotation(model) != 0:
+        R = polar_rotation(Fp)
+    tau = kirchhoff_stress(model, Fp, R, ml[0], ml[1])
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * state.C[p]
 
     vp = state.v[p]

@@ -29,16 +29,19 @@ class ConstitutiveModel:
 
     Attributes:
         name: the key used in material files (``MaterialRecord.model``).
-        stress: Warp function (F: mat33, mu: float, lam: float) -> Kirchhoff stress tau (mat33), in the
-            kernels' units (sim-box moduli).
+        stress: Warp function (F: mat33, R: mat33, mu: float, lam: float) -> Kirchhoff stress tau (mat33),
+            in the kernels' units (sim-box moduli). R is the polar rotation of F when ``uses_rotation``, else
+            the identity (the kernel computes it once, so backward passes do not recompute it per call level).
         reference: PyTorch function (F [N,3,3], mu [N], lam [N]) -> tau [N,3,3] (any units, float64).
         description: one line for help texts.
+        uses_rotation: whether ``stress`` reads R.
     """
 
     name: str
     stress: wp.Function
     reference: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
     description: str
+    uses_rotation: bool = False
 
 
 #: Registered models in id order (a particle's model id indexes this list).

@@ -9,12 +9,11 @@ import torch
 import warp as wp
 
 from endogsim.physics.constitutive import ConstitutiveModel, register_model
-from endogsim.physics.polar import polar_rotation, polar_rotation_torch
+from endogsim.physics.polar import polar_rotation_torch
 
 
 @wp.func
-def fixed_corotated_stress(F: wp.mat33, mu: float, lam: float):
-    R = polar_rotation(F)
+def fixed_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float):
     J = wp.determinant(F)
     return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(n=3, dtype=float)
 
@@ -27,4 +26,4 @@ def fixed_corotated_torch(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) 
 
 
 register_model(ConstitutiveModel("fixed_corotated", fixed_corotated_stress, fixed_corotated_torch,
-                                 "fixed corotated (PhysGaussian's jelly; the paper's)"))
+                                 "fixed corotated (PhysGaussian's jelly; the paper's)", uses_rotation=True))

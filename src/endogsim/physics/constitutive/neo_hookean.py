@@ -13,7 +13,7 @@ from endogsim.physics.constitutive import ConstitutiveModel, register_model
 
 
 @wp.func
-def neo_hookean_stress(F: wp.mat33, mu: float, lam: float):
+def neo_hookean_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float):
     J = wp.determinant(F)
     I = wp.identity(n=3, dtype=float)
     return mu * (F * wp.transpose(F) - I) + lam * wp.log(wp.max(J, 1.0e-4)) * I

@@ -14,7 +14,7 @@ from endogsim.physics.constitutive import ConstitutiveModel, register_model
 
 
 @wp.func
-def stvk_stress(F: wp.mat33, mu: float, lam: float):
+def stvk_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float):
     I = wp.identity(n=3, dtype=float)
     green = 0.5 * (wp.transpose(F) * F - I)
     S = 2.0 * mu * green + lam * wp.trace(green) * I
