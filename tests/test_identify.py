@@ -37,13 +37,13 @@ def field_from_truth(problem, E_factor=1.0, nu=None, E_override=None) -> Materia
     for o in problem.spec.objects:
         E = o.E if o.rigid else (E_override if E_override is not None else o.E * E_factor)
         recs.append(MaterialRecord(name=o.name, object_id=o.id, klass=o.klass, rigid=o.rigid,
-                                   model="rigid" if o.rigid else "fixed_corotated", E=E,
+                                   model="rigid" if o.rigid else o.model, E=E,
                                    nu=o.nu if (o.rigid or nu is None) else nu, density=o.density, source="manual"))
     return MaterialField(recs)
 
 
 def fast_config(**kw) -> IdentifyConfig:
-    return IdentifyConfig(**{"iters": 3, "lr": 0.1, "patience": 100, "frame_stride": 2, **kw})
+    return IdentifyConfig(**{"iters": 3, "lr": 0.1, "patience": 100, "frame_stride": 2, "intervals": False, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,9 @@ def test_problem_matches_the_scene(problem):
     assert pb.frames.shape == (FRAMES, pb.camera.height, pb.camera.width, 3)
     assert pb.deformable_ids == [1]
     assert pb.particles.object_ids.unique().tolist() == [1]  # the rigid tool is a collider, not particles
-    assert len(pb.scenario.colliders) == 1 and len(pb.scenario.anchors) == 1
+    assert len(pb.scenario.colliders) == 1
+    # pinned particles (the border band), the support behind the back face, the border band's nodes
+    assert [a.kind for a in pb.scenario.anchors] == ["fixed", "support", "sticky"]
     assert pb.gt_flow.shape == (FRAMES - 1, pb.camera.height, pb.camera.width, 2)
 
 
@@ -87,17 +89,19 @@ def test_true_materials_reproduce_the_ground_truth_flow(problem):
     assert ev.psnr > 35
 
 
-def test_loss_is_least_at_the_true_material(problem):
-    """Through noisy renders and the estimated (DIS) flow, the loss is least at the true E and nu: softer,
-    stiffer and more incompressible materials (the prior's direction) all score worse."""
+def test_loss_is_least_near_the_true_material(problem):
+    """The ground truth was simulated at twice identification's resolution, from its own particles: through
+    the discretisation gap, noisy renders and the estimated (DIS) flow, the loss on a factor-2 grid of E is
+    still least at the true E. (Not so for nu: at this discretisation nu = 0.47 scores slightly better than
+    the true 0.4; the suite measures that bias.)"""
     from endogsim.identify.optimize import evaluate_loss, prepare_observations
 
     cfg = IdentifyConfig()
     obs, cam = prepare_observations(problem, cfg, None)
-    loss = lambda fld: evaluate_loss(problem, fld, None, obs, cam, cfg, grad=False)[1]["total"]  # noqa: E731
+    loss = lambda fld: evaluate_loss(problem, fld, None, obs, cam, cfg, grad=False).parts["total"]  # noqa: E731
     at_truth = loss(field_from_truth(problem))
-    for fld in (field_from_truth(problem, 0.7), field_from_truth(problem, 1.4), field_from_truth(problem, nu=0.47)):
-        assert at_truth < loss(fld)
+    for factor in (0.25, 0.5, 2.0, 4.0):
+        assert at_truth < loss(field_from_truth(problem, factor)), factor
 
 
 def test_loss_decreases_and_E_moves_towards_the_truth(run3):
@@ -119,7 +123,7 @@ def test_gradient_matches_finite_differences(run3, problem):
     cfg = fast_config()
     obs, cam = prepare_observations(problem, cfg, None)
     h = 0.02  # decades
-    L = [evaluate_loss(problem, field_from_truth(problem, 2.0 * 10 ** s), None, obs, cam, cfg, grad=False)[1]["total"]
+    L = [evaluate_loss(problem, field_from_truth(problem, 2.0 * 10 ** s), None, obs, cam, cfg, grad=False).parts["total"]
          for s in (h, -h)]
     fd = (L[0] - L[1]) / (2 * h)
     g = res.history[0]["grad_log10_E"][0]
@@ -133,7 +137,7 @@ def test_rigid_objects_stay_frozen(run3, problem):
     assert res.field[tool.id].E == tool.E and res.field[tool.id].nu == tool.nu and res.field[tool.id].rigid
     assert res.field[tool.id].source == "manual"
     assert all(set(h["E"]) == {"1"} for h in res.history)  # only the deformable object is a parameter
-    assert res.field[1].source == "identified"
+    assert res.field[1].source.startswith(("identified", "prior (not identifiable"))
 
 
 def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
@@ -154,21 +158,25 @@ def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
 
 
 def test_unstable_request_is_refused_with_the_limit(problem):
-    with pytest.raises(SimulationError, match="stability limit"):
+    with pytest.raises(SimulationError, match="needs more than 400 substeps per frame"):
         identify(problem, field_from_truth(problem, E_override=1e8), fast_config(iters=1), strict=True)
 
 
 def test_search_box_respects_the_stability_limit(problem):
-    fld = field_from_truth(problem, E_override=1e8)
-    cfg = fast_config()
-    params = fld.to_params(nu_bounds=cfg.nu_bounds)
-    project_into_search_box(params, problem, fld, cfg)
     from endogsim.physics import max_stable_E
 
-    emax = max_stable_E(float(params.nu()[0]), 1060.0, problem.mpm, problem.scenario.box.size)
+    fld = field_from_truth(problem, E_override=1e8)
+    cfg = fast_config(E_max=1e9, max_substeps=60)  # the substep bound binds, not E_max
+    params = fld.to_params(nu_bounds=cfg.nu_bounds)
+    project_into_search_box(params, problem, fld, cfg)
+    emax = max_stable_E(float(params.nu().detach()[0]), 1060.0, problem.mpm, problem.scenario.box.size, substeps=60)
     assert float(params.E()[0]) == pytest.approx(cfg.stability_margin * emax, rel=1e-6)
+    cfg = fast_config(E_max=2e4)  # E_max binds
+    params = fld.to_params(nu_bounds=cfg.nu_bounds)
+    project_into_search_box(params, problem, fld, cfg)
+    assert float(params.E()[0]) == pytest.approx(2e4, rel=1e-9)
     # Higher nu -> lower limit (near-incompressible materials need smaller steps).
-    hi = stable_log10_E_max(problem, torch.tensor([0.3, 0.49]), torch.tensor([1000.0, 1000.0]), cfg)
+    hi = stable_log10_E_max(problem, torch.tensor([0.3, 0.49]), torch.tensor([1000.0, 1000.0]), fast_config(E_max=1e9))
     assert hi[0] > hi[1]
 
 

@@ -23,3 +23,8 @@ class MaterialError(EndoGSimError):
 
 class SimulationError(EndoGSimError):
     """The simulation was refused (unstable time step) or diverged (NaN/inf)."""
+
+
+class IdentificationError(EndoGSimError):
+    """Identification cannot go on: a loss term or a gradient is NaN/inf (the message names the frame and
+    the quantity)."""

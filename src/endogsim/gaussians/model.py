@@ -89,6 +89,20 @@ def covariance_from_scale_rot(scales: torch.Tensor, quats: torch.Tensor) -> torc
     return M @ M.transpose(-1, -2)
 
 
+def covariance_to_scale_rot(covs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Log axis scales [N, 3] (log metres) and quaternions [N, 4] (w, x, y, z) of covariances [N, 3, 3].
+
+    The inverse of :func:`covariance_from_scale_rot` (eigen-decomposition; the eigenvector frame is made
+    right-handed so it is a rotation): a deformed Gaussian (covariance F Sigma F^T) written back as a model.
+    """
+    sym = 0.5 * (covs + covs.mT).double()
+    evals, evecs = torch.linalg.eigh(sym)
+    flip = torch.linalg.det(evecs) < 0
+    evecs[flip, :, 0] = -evecs[flip, :, 0]
+    log_scales = 0.5 * torch.log(evals.clamp_min(1e-24))
+    return log_scales.to(covs.dtype), rotmat_to_quat(evecs).to(covs.dtype)
+
+
 @dataclass
 class Gaussians:
     """A set of N Gaussian splats.

@@ -40,10 +40,16 @@ class IdentifyConfig:
         patience: stop after this many iterations without progress (early stopping).
         global_material: tie every deformable object to one (E, nu) pair (the "no material field" ablation).
         nu_bounds: (lo, hi) of the bounded Poisson parametrisation nu = lo + (hi - lo) sigmoid(raw).
-        E_min: lower end of the search box for E (Pa); the upper end is the stability limit (and ``E_max``).
-        E_max: an optional extra upper bound (Pa).
-        stability_margin: keep E below this fraction of the CFL-limited maximum.
+        E_min, E_max: the search box for E (Pa): soft tissue in vivo is 0.5-20 kPa, tensile tests of organ
+            walls reach MPa (``shared/docs/tissue_mechanics.md``); the upper end is also bounded by
+            ``max_substeps``.
+        max_substeps: the most substeps per frame a rollout may take: E is kept below the stiffness whose CFL
+            rule would ask for more (an iteration's cost grows with sqrt(E)).
+        stability_margin: keep E below this fraction of that CFL-limited maximum.
         optimize_nu: also optimise nu (else only E moves).
+        intervals: after optimising, measure each parameter's 90% interval and whether the video determines
+            it (:mod:`endogsim.identify.uncertainty`: a few forward simulations per parameter); a parameter it
+            does not determine keeps its initial value, labelled "prior (not identifiable from this video)".
         render_scale: render (and compare) at this fraction of the image size; flows scale with it. Rendering
             dominates an iteration on a CPU, and 0.5 quarters it. The rasteriser's fixed screen-space
             low-pass makes reduced-scale renders differ from the area-downsampled observations by a
@@ -74,9 +80,11 @@ class IdentifyConfig:
     global_material: bool = False
     nu_bounds: tuple[float, float] = (0.0, 0.49)
     E_min: float = 50.0
-    E_max: float | None = None
+    E_max: float = 1.0e6
+    max_substeps: int = 400
     stability_margin: float = 0.95
     optimize_nu: bool = True
+    intervals: bool = True
     render_scale: float = 0.5
     flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))
     frames: int | None = None
@@ -95,8 +103,10 @@ class IdentifyConfig:
             raise MaterialError(f"lr = {self.lr}, lr_nu = {self.lr_nu} must be > 0")
         if not (0 < self.render_scale <= 1):
             raise MaterialError(f"render_scale = {self.render_scale} must lie in (0, 1]")
-        if not self.E_min > 0:
-            raise MaterialError(f"E_min = {self.E_min} Pa must be > 0")
+        if not 0 < self.E_min < self.E_max:
+            raise MaterialError(f"the E search box [{self.E_min}, {self.E_max}] Pa must satisfy 0 < E_min < E_max")
+        if self.max_substeps < 1:
+            raise MaterialError(f"max_substeps = {self.max_substeps} must be >= 1")
         if self.time_budget is not None and not self.time_budget > 0:
             raise MaterialError(f"time_budget = {self.time_budget} s must be > 0 (or None)")
         if self.frame_stride < 1:

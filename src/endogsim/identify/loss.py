@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,14 +30,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from endogsim.errors import MaterialError
+from endogsim.errors import IdentificationError, MaterialError
 from endogsim.io.atomic import save_npz_atomic
 from endogsim.io.images import resize_frames
 from endogsim.priors.flow import FlowConfig, flow_estimator
 from endogsim.registry import Registry
 from endogsim.scene.forward import Rendered
 
-__all__ = ["Observations", "make_observations", "observed_flow", "LOSS_TERMS", "identification_loss"]
+__all__ = ["Observations", "make_observations", "observed_flow", "LOSS_TERMS", "LossValue", "identification_loss"]
 
 
 @dataclass
@@ -113,42 +114,67 @@ def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (err * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1.0)
 
 
-#: name -> term(rendered, observations) -> [K] per-frame values (unweighted, each a mean over the frame's
-#: valid pixels); the loss is the weighted sum over terms and frames.
-LOSS_TERMS: Registry[Callable[[Rendered, Observations], torch.Tensor]] = Registry("loss term", MaterialError)
+#: name -> term(rendered, observations) -> (frame indices [K], per-frame values [K]) (unweighted, each a mean
+#: over the frame's valid pixels); the loss is the weighted sum over terms and frames.
+LOSS_TERMS: Registry[Callable[[Rendered, Observations], tuple[list[int], torch.Tensor]]] = Registry(
+    "loss term", MaterialError)
 
 
 @LOSS_TERMS.register("render")
-def render_term(rendered: Rendered, obs: Observations) -> torch.Tensor:
+def render_term(rendered: Rendered, obs: Observations) -> tuple[list[int], torch.Tensor]:
     """||I_t - I^_t||^2 per rendered frame t > 0 (frame 0 is the shared rest state: a constant)."""
     idx = torch.as_tensor(rendered.frames, dtype=torch.long)
     sel = idx > 0
-    return _masked_mean((rendered.rgb[sel] - obs.frames[idx[sel]]).square().sum(-1), obs.valid_rgb[idx[sel]])
+    return idx[sel].tolist(), _masked_mean((rendered.rgb[sel] - obs.frames[idx[sel]]).square().sum(-1),
+                                           obs.valid_rgb[idx[sel]])
 
 
 @LOSS_TERMS.register("flow")
-def flow_term(rendered: Rendered, obs: Observations) -> torch.Tensor:
+def flow_term(rendered: Rendered, obs: Observations) -> tuple[list[int], torch.Tensor]:
     """||U(I_t, I_t+1) - U^_t||^2 per rendered frame t < T - 1 (pixels^2)."""
     idx = torch.as_tensor(rendered.frames, dtype=torch.long)[: rendered.flow.shape[0]]
-    return _masked_mean((rendered.flow - obs.flow[idx]).square().sum(-1), obs.valid_flow[idx])
+    return idx.tolist(), _masked_mean((rendered.flow - obs.flow[idx]).square().sum(-1), obs.valid_flow[idx])
 
 
-def identification_loss(rendered: Rendered, obs: Observations,
-                        weights: Mapping[str, float]) -> tuple[torch.Tensor, dict[str, float]]:
-    """The loss and its parts.
+@dataclass
+class LossValue:
+    """The loss of one simulation and where it comes from.
+
+    Attributes:
+        total: the weighted sum (differentiable).
+        parts: {term: its unweighted sum over frames, ..., "total": total} (floats).
+        per_frame: {frame: weighted sum of the terms at that frame} (floats): the loss frame by frame, for
+            its noise and for naming the frame of a NaN.
+    """
+
+    total: torch.Tensor
+    parts: dict[str, float]
+    per_frame: dict[int, float]
+
+
+def identification_loss(rendered: Rendered, obs: Observations, weights: Mapping[str, float]) -> LossValue:
+    """The loss, its terms and its frames.
 
     Args:
         rendered: renders of the simulation at ``rendered.frames`` (rgb [K,H,W,3], flow [K',H,W,2]).
         obs: the observations at the same size.
         weights: {term name: weight} over :data:`LOSS_TERMS` (e.g. the paper's {"render": 1, "flow": 0.1}).
-    Returns:
-        (loss, {term: its unweighted sum over frames, ..., "total": loss}).
+    Raises:
+        IdentificationError: a term is NaN/inf; the message names the term and the first such frame.
     """
     total = torch.zeros((), dtype=torch.float64)
     parts: dict[str, float] = {}
+    per_frame: dict[int, float] = {}
     for name, w in weights.items():
-        value = LOSS_TERMS.get(name)(rendered, obs).sum()
+        frames, values = LOSS_TERMS.get(name)(rendered, obs)
+        bad = [t for t, v in zip(frames, values.detach().tolist()) if not math.isfinite(v)]
+        if bad:
+            raise IdentificationError(f"the {name} term of the loss is NaN/inf at frame {bad[0]} "
+                                      f"(frames {bad}); the simulation or its render failed there")
+        for t, v in zip(frames, values.detach().tolist()):
+            per_frame[t] = per_frame.get(t, 0.0) + w * v
+        value = values.sum()
         parts[name] = float(value.detach())
         total = total + w * value
     parts["total"] = float(total.detach())
-    return total, parts
+    return LossValue(total, parts, per_frame)

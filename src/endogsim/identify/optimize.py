@@ -5,9 +5,10 @@ One iteration: simulate from the frame-0 state with the current materials (diffe
 video and its estimated flow, back-propagate, clip the gradient, take an Adam step, and project back into
 the search box. Rigid objects are never parameters (frozen by construction).
 
-Search box: E in [E_min, margin * E_max(nu)] where E_max(nu) is the CFL limit of the identification
-discretisation (:func:`endogsim.physics.max_stable_E`); nu in the sigmoid's (lo, hi). An initial material
-beyond the stability limit is refused with a message giving the limit.
+Search box: E in [E_min, min(E_max, margin * E_cfl(nu))] where E_cfl(nu) is the stiffest material the
+identification discretisation simulates within ``max_substeps`` per frame (:func:`endogsim.physics.max_stable_E`;
+the substeps of every rollout follow the CFL rule); nu in the sigmoid's (lo, hi). An initial material
+given explicitly beyond that bound is refused with a message giving it.
 
 Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
 not improved by a relative ``tol`` for ``patience`` iterations; a checkpoint is written atomically after
@@ -24,16 +25,18 @@ from pathlib import Path
 
 import torch
 
-from endogsim.errors import DataError, SimulationError
+from endogsim.errors import DataError, IdentificationError, SimulationError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import (
     Observations,
+    LossValue,
     identification_loss,
     make_observations,
     observed_flow,
 )
 from endogsim.io.atomic import save_torch_atomic
-from endogsim.materials.field import MaterialField, MaterialParams
+from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
+from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord
 from endogsim.physics import max_stable_E
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import render_sequence, simulate_materials
@@ -91,6 +94,9 @@ class IdentifyResult:
         seconds: optimisation wall time in total (over resumes).
         stopped: "converged" (early stop), "iters" (iterations spent), "time_budget" (``config.time_budget``
             seconds spent), "interrupted" (``stop_after``) or "no_iterations".
+        intervals: the 90% interval and identifiability of every identified parameter
+            (:mod:`endogsim.identify.uncertainty`); a parameter the video does not determine keeps its
+            initial value in ``field``.
     """
 
     field: MaterialField
@@ -102,20 +108,21 @@ class IdentifyResult:
     seconds: float = 0.0
     stopped: str = "iters"
     notes: list[str] = field(default_factory=list)
+    intervals: list[ParameterInterval] = field(default_factory=list)
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
-    """Upper end of the search box for log10 E per parameter slot: margin * the CFL limit at ``nu`` (and E_max)."""
+    """Upper end of the search box for log10 E per parameter slot: ``E_max``, and the stiffest material the
+    simulation takes within ``max_substeps`` per frame at ``nu`` (the CFL rule; ``stability_margin`` of it)."""
     out = []
     for n, rho in zip(nu.detach().double().tolist(), density.detach().double().tolist()):
-        e = config.stability_margin * max_stable_E(n, rho, problem.mpm, problem.scenario.box.size)
-        if config.E_max is not None:
-            e = min(e, config.E_max)
-        out.append(math.log10(e))
+        e = config.stability_margin * max_stable_E(n, rho, problem.mpm, problem.scenario.box.size,
+                                                    substeps=config.max_substeps)
+        out.append(math.log10(min(e, config.E_max)))
     return torch.tensor(out, dtype=torch.float64)
 
 
-def check_stable(problem: SimScene, fld: MaterialField) -> None:
+def check_stable(problem: SimScene, fld: MaterialField, config: IdentifyConfig) -> None:
     """Refuse materials the identification discretisation cannot simulate stably (clear message).
 
     Used for materials a user asked for explicitly (a materials file); guesses of an initialiser (prior,
@@ -125,14 +132,13 @@ def check_stable(problem: SimScene, fld: MaterialField) -> None:
     for r in fld.deformable:
         if r.object_id not in problem.deformable_ids:
             continue
-        emax = max_stable_E(r.nu, r.density, mpm, problem.scenario.box.size)
+        emax = max_stable_E(r.nu, r.density, mpm, problem.scenario.box.size, substeps=config.max_substeps)
         if r.E > emax:
-            dt = mpm.frame_dt / mpm.substeps_per_frame
             raise SimulationError(
-                f"object {r.object_id} ({r.name!r}): E = {r.E:.4g} Pa (nu {r.nu:.3f}) is beyond the stability limit "
-                f"E_max = {emax:.4g} Pa of the identification simulation (grid {mpm.grid_res}, dt {dt:.3g} s, "
-                f"{mpm.substeps_per_frame} substeps per frame, CFL {mpm.cfl_number}); start from E <= {emax:.4g} Pa "
-                "or raise the substeps in scene.json")
+                f"object {r.object_id} ({r.name!r}): E = {r.E:.4g} Pa (nu {r.nu:.3f}) needs more than "
+                f"{config.max_substeps} substeps per frame at the identification discretisation (grid "
+                f"{mpm.grid_res}, frames {mpm.frame_dt:.4g} s apart, CFL {mpm.cfl_number}): at most "
+                f"E = {emax:.4g} Pa; start from a softer material or raise max_substeps")
 
 
 def _slot_density(problem: SimScene, fld: MaterialField, params: MaterialParams) -> torch.Tensor:
@@ -178,7 +184,7 @@ def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Pat
 
 
 def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams | None, obs: Observations,
-                  camera, config: IdentifyConfig, grad: bool):
+                  camera, config: IdentifyConfig, grad: bool) -> LossValue:
     """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects)."""
     with torch.set_grad_enabled(grad):
         pos, F = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
@@ -219,7 +225,7 @@ def identify(
     if missing:
         raise DataError(f"the initial material field has no record for object(s) {missing} of {problem.folder}")
     if strict:
-        check_stable(problem, init_field)
+        check_stable(problem, init_field, cfg)
     run_dir = None if run_dir is None else Path(run_dir)
     if run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -274,12 +280,17 @@ def identify(
         for gr in opt.param_groups:
             gr["lr"] = lr * gr["lr_scale"]
         opt.zero_grad(set_to_none=True)
-        loss, parts = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
-        loss.backward()
-        for leaf in leaves:
+        value = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+        value.total.backward()
+        parts = value.parts
+        for leaf, what in zip(leaves, ("log10 E", "raw nu")):
             if leaf.grad is None:
                 leaf.grad = torch.zeros_like(leaf)
-            leaf.grad.nan_to_num_(0.0, 0.0, 0.0)
+            bad = [o for o in params.object_ids if not bool(torch.isfinite(leaf.grad[params.slot(o)]))]
+            if bad:
+                raise IdentificationError(f"iteration {k}: the gradient of the loss with respect to {what} of "
+                                          f"object(s) {bad} is NaN/inf although every loss term was finite: "
+                                          "the backward pass through the renderer produced it")
         gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
         E, nu = _values(params)
         rec = {"iteration": k, "loss": parts["total"], "terms": {n: v for n, v in parts.items() if n != "total"}, "lr": lr,
@@ -311,6 +322,7 @@ def identify(
             stopped = "converged"
             break
 
+    intervals: list[ParameterInterval] = []
     if best is None:  # optimisation off: the initial materials are the answer
         ident = MaterialField([r.model_copy() for r in init_field.records], meta=dict(init_field.meta))
     else:
@@ -318,8 +330,45 @@ def identify(
         with torch.no_grad():
             final.log10_E.copy_(best["log10_E"])
             final.nu_raw.copy_(best["nu_raw"])
-        ident = init_field.from_params(final, source="identified")
+        if cfg.intervals:
+            intervals = parameter_intervals(
+                final, {o: problem.labels[o].name for o in final.object_ids},
+                lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False).per_frame,
+                lambda trial: ([math.log10(cfg.E_min)] * trial.log10_E.shape[0],
+                               stable_log10_E_max(problem, trial.nu(), _slot_density(problem, init_field, trial), cfg).tolist()),
+                cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]})
+        ident = identified_field(init_field, final, intervals)
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
                           best_loss=math.nan if best is None else float(best["loss"]),
-                          iterations=len(history), seconds=seconds, stopped=stopped, notes=notes)
+                          iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals)
+
+
+#: The source of a material the video could not determine: its initial value is kept.
+NOT_IDENTIFIABLE = "prior (not identifiable from this video)"
+
+
+def identified_field(init: MaterialField, final: MaterialParams, intervals: list[ParameterInterval]) -> MaterialField:
+    """The identified field: every deformable object's E and nu from ``final`` where the video determines
+    them (``intervals``; all of them without intervals), its initial value elsewhere, labelled so."""
+    ok = {(iv.object_id, iv.parameter): iv.identifiable for iv in intervals}
+    E = final.E().detach().tolist()
+    nu = final.nu().detach().tolist()
+    recs = []
+    for r in init.records:
+        if not r.rigid and r.object_id in final.object_ids:
+            s = final.slot(r.object_id)
+            slot_ids = [o for o in final.object_ids if final.slot(o) == s]
+            e_ok = ok.get((slot_ids[0], "E"), True)
+            nu_ok = ok.get((slot_ids[0], "nu"), True)
+            if e_ok and nu_ok:
+                source = "identified"
+            elif not (e_ok or nu_ok):
+                source = NOT_IDENTIFIABLE
+            else:
+                source = f"identified ({'E' if not e_ok else 'nu'}: {NOT_IDENTIFIABLE})"
+            r = r.model_copy(update={"E": float(E[s]) if e_ok else r.E, "nu": float(nu[s]) if nu_ok else r.nu,
+                                     "source": source, "confidence": None})
+            r = MaterialRecord.model_validate(r.model_dump())  # re-check physical bounds
+        recs.append(r)
+    return MaterialField(recs, meta=dict(init.meta))

@@ -3,8 +3,10 @@
 Run folder written by :func:`write_outputs` (every file atomically):
   materials_identified.json   the identified material field (E Pa, nu, density kg/m^3; MaterialField JSON)
   materials_init.json         the field it started from
-  metrics.json                RE (per object and mean, ``re_mean``), ``epe`` (px), ``psnr`` (dB), ``ssim``,
-                              ``seconds``, ``iterations``, final loss, settings
+  metrics.json                RE (per object and mean, ``re_mean``) and |E/E_true - 1| (``e_rel_error_*``)
+                              where the scene has ground truth; ``intervals`` (90%) and ``identifiable``
+                              (per object and parameter, with the evidence); ``epe`` (px), ``psnr`` (dB),
+                              ``ssim``, ``seconds``, ``iterations``, final loss, settings
   history.json                per-iteration loss, parameters, gradients
   loss.png, parameters.png    loss and parameter trajectories
   comparison.mp4              observed | simulated | flow error (|U_sim - U_gt| or, without ground truth,
@@ -28,6 +30,7 @@ from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import IdentifyResult
+from endogsim.identify.uncertainty import ParameterInterval
 from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.materials.field import MaterialField
 from endogsim.scene.folder import SimScene
@@ -93,6 +96,26 @@ def _colormap(err: np.ndarray, vmax: float) -> np.ndarray:
     return cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)[..., ::-1].astype(np.float32) / 255.0
 
 
+def interval_table(intervals: list[ParameterInterval]) -> dict:
+    """{object name: {"E": [lo, hi] Pa, "nu": [lo, hi]}} of the 90% intervals."""
+    out: dict = {}
+    for iv in intervals:
+        out.setdefault(iv.name, {})[iv.parameter] = iv.interval
+    return out
+
+
+def identifiable_table(intervals: list[ParameterInterval]) -> dict:
+    """{object name: {parameter: {"identifiable": bool, "reason", "interval", "search_box", "evidence"}}}."""
+    out: dict = {}
+    for iv in intervals:
+        out.setdefault(iv.name, {})[iv.parameter] = {
+            "identifiable": iv.identifiable, "reason": iv.reason, "interval": iv.interval, "search_box": iv.search_box,
+            "best": iv.best, "evidence": {"first_gradient": iv.first_gradient,
+                                          "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z}
+                                                    for v, d, se, z in iv.slice]}}
+    return out
+
+
 def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: np.ndarray) -> np.ndarray:
     """[T, H, 3W, 3] frames: observed | simulated | flow error (inferno, 0..1 px; last frame repeats)."""
     T = observed.shape[0]
@@ -125,9 +148,12 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "seconds": result.seconds,
         "epe": ev.epe, "psnr": ev.psnr, "ssim": ev.ssim,
-        "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid}
+        "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
+                               "model": r.model, "source": r.source}
                       for r in result.field.records},
-        "units": {"E": "Pa", "density": "kg/m^3", "epe": "px", "psnr": "dB", "seconds": "s"},
+        "intervals": interval_table(result.intervals),
+        "identifiable": identifiable_table(result.intervals),
+        "units": {"E": "Pa", "density": "kg/m^3", "epe": "px", "psnr": "dB", "seconds": "s", "intervals": "90%"},
         "notes": result.notes, "config": config.to_json(),
     }
     if re is not None:
@@ -153,10 +179,17 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
              f"{result.seconds:.1f} s"]
     for r in result.field.records:
-        kind = "rigid (frozen)" if r.rigid else f"identified from E {result.init_field[r.object_id].E:.4g} Pa, nu {result.init_field[r.object_id].nu:.3f}"
+        init = result.init_field[r.object_id]
+        kind = "rigid (frozen)" if r.rigid else f"{r.source}; from E {init.E:.4g} Pa, nu {init.nu:.3f}"
         lines.append(f"  {r.name} (id {r.object_id}): E = {r.E:.4g} Pa, nu = {r.nu:.3f}  [{kind}]")
+    for iv in result.intervals:
+        unit = " Pa" if iv.parameter == "E" else ""
+        lines.append(f"    {iv.parameter} 90% interval [{iv.interval[0]:.4g}, {iv.interval[1]:.4g}]{unit}: "
+                     f"{'identifiable' if iv.identifiable else 'NOT identifiable'} ({iv.reason})")
     if re is not None:
-        lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; mean {re['re_mean']:.3f}")
+        lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; "
+                     f"mean {re['re_mean']:.3f}; |E/E_true - 1| mean {re['e_rel_error_mean']:.3f}, "
+                     f"median {re['e_rel_error_median']:.3f}")
     lines.append(f"EPE {ev.epe:.3f} px, PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
     lines += [f"note: {n}" for n in result.notes]
     write_text_atomic(run / "summary.txt", "\n".join(lines) + "\n")

@@ -6,7 +6,8 @@ converts them to sim-box units in :mod:`endogsim.physics.units`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -66,41 +67,71 @@ class MPMConfig:
             raise SimulationError(f"MPMConfig.wall_padding = {self.wall_padding} cells must lie in [2, grid_res/4]")
 
 
+#: An indicator of world points: points [N, 3] (metres) -> bool [N].
+Region = Callable[[np.ndarray], np.ndarray]
+#: Unit normals at world points: points [N, 3] (metres) -> [N, 3].
+NormalField = Callable[[np.ndarray], np.ndarray]
+
+
 @dataclass
 class Anchor:
-    """A boundary condition on a region: an axis-aligned world box and/or a particle mask.
+    """A boundary condition on a region of the world (an axis-aligned box, or any indicator of world
+    points) and/or on a set of particles.
 
     Kinds:
-      - "fixed": particles that start in the box (or are in ``particle_mask``) are held at their initial
-        position and carry no mass (their inertia is the fixed anatomy's); grid nodes in the box, and the
+      - "fixed": particles that start in the region (or are in ``particle_mask``) are held at their initial
+        position and carry no mass (their inertia is the fixed anatomy's); grid nodes in the region, and the
         nodes those particles dominate at rest, get v = 0.
-      - "sticky": grid nodes in the box get v = 0 (particles there stop, but are not pinned exactly).
-      - "slip": grid nodes in the box lose the velocity component along ``normal`` (a frictionless support).
+      - "sticky": grid nodes in the region get v = 0 (particles there stop, but are not pinned exactly).
+      - "slip": grid nodes in the region lose the velocity component along ``normal`` (a frictionless wall).
+      - "support": grid nodes in the region that move into the support (along -``normal``) stop, those that
+        move away from it are free: a support that pushes but never pulls, with friction while pressed
+        (tissue lying on the anatomy behind it does not slide under its weight, but can be lifted off).
+        Give the region as the space behind the tissue's back face: conditions set on nodes by geometry
+        converge with the grid, those inferred from particle layers do not.
 
     Attributes:
-        lo, hi: world box corners (metres), or None with a particle mask.
-        kind: "fixed" | "sticky" | "slip".
-        normal: unit normal (world) for "slip".
+        lo, hi: world box corners (metres), or None.
+        region: indicator of world points (instead of a box), or None.
+        kind: "fixed" | "sticky" | "slip" | "support".
+        normal: unit normal (world) for "slip" and "support" (for a support: pointing out of it, into the
+            tissue), or a field of normals at world points.
         particle_mask: [P] bool, particles to pin ("fixed" only).
     """
 
     lo: tuple[float, float, float] | None = None
     hi: tuple[float, float, float] | None = None
-    kind: Literal["fixed", "sticky", "slip"] = "fixed"
-    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    kind: Literal["fixed", "sticky", "slip", "support"] = "fixed"
+    normal: tuple[float, float, float] | NormalField = (0.0, 0.0, 1.0)
     particle_mask: torch.Tensor | np.ndarray | None = None
+    region: Region | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("fixed", "sticky", "slip"):
-            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip")
+        if self.kind not in ("fixed", "sticky", "slip", "support"):
+            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip|support")
         if (self.lo is None) != (self.hi is None):
-            raise SimulationError("Anchor needs both lo and hi (or neither, with a particle_mask)")
-        if self.lo is None and self.particle_mask is None:
-            raise SimulationError("Anchor needs a box (lo, hi) or a particle_mask")
+            raise SimulationError("Anchor needs both lo and hi (or neither)")
+        if self.lo is not None and self.region is not None:
+            raise SimulationError("Anchor takes a box (lo, hi) or a region, not both")
+        if self.lo is None and self.region is None and self.particle_mask is None:
+            raise SimulationError("Anchor needs a box (lo, hi), a region or a particle_mask")
         if self.particle_mask is not None and self.kind != "fixed":
             raise SimulationError("Anchor.particle_mask is only meaningful for kind 'fixed'")
-        if self.kind == "slip" and float(np.linalg.norm(self.normal)) < 1e-9:
-            raise SimulationError("Anchor.normal must be non-zero for a slip anchor")
+        if self.kind in ("slip", "support") and not callable(self.normal) and float(np.linalg.norm(self.normal)) < 1e-9:
+            raise SimulationError(f"Anchor.normal must be non-zero for a {self.kind} anchor")
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: which world points [N, 3] (metres) lie in the anchor's box or region (none without one)."""
+        if self.region is not None:
+            return np.asarray(self.region(points), dtype=bool).reshape(-1)
+        if self.lo is None:
+            return np.zeros(len(points), bool)
+        return ((points >= np.asarray(self.lo, float)) & (points <= np.asarray(self.hi, float))).all(1)
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        """[N, 3] unit normals at world points [N, 3]."""
+        n = self.normal(points) if callable(self.normal) else np.broadcast_to(np.asarray(self.normal, float), points.shape)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 @dataclass
@@ -182,6 +213,15 @@ class Scenario:
         anchors: boundary conditions on regions (see :class:`Anchor`).
         forces: external accelerations / impulses (see :class:`ExternalForce`).
         colliders: kinematic rigid instruments (see :class:`RigidCollider`).
+        settle_frames: frames simulated before frame 0 with the colliders at their frame-0 pose and no
+            external force but gravity, so that frame 0 is the equilibrium under gravity (a tissue seen at
+            rest in a video is not stress-free: it carries its weight). 0: frame 0 is stress-free.
+        settle: what frame 0 is after settling: "keep" (the settled state: a ground truth whose observed
+            frame 0 is its equilibrium) or "subtract" (the given positions: the static sag is subtracted
+            from every later frame and its deformation gradient divided out, so a rollout from an observed,
+            already-loaded frame 0 does not sag twice).
+        settle_damping: grid velocity damping (1/s) while settling, or None for ``MPMConfig.damping``. The
+            equilibrium does not depend on it; a strong one reaches it in fewer frames.
     """
 
     box: SimBox
@@ -189,3 +229,33 @@ class Scenario:
     anchors: list[Anchor] = field(default_factory=list)
     forces: list[ExternalForce] = field(default_factory=list)
     colliders: list[RigidCollider] = field(default_factory=list)
+    settle_frames: int = 0
+    settle: Literal["keep", "subtract"] = "subtract"
+    settle_damping: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.settle_frames < 0:
+            raise SimulationError(f"Scenario.settle_frames = {self.settle_frames} must be >= 0")
+        if self.settle_damping is not None and not self.settle_damping >= 0:
+            raise SimulationError(f"Scenario.settle_damping = {self.settle_damping} 1/s must be >= 0")
+        if self.settle not in ("keep", "subtract"):
+            raise SimulationError(f"Scenario.settle {self.settle!r} is not keep|subtract")
+
+    def with_settling(self, frame_dt: float) -> "Scenario":
+        """The scenario over settle_frames + T frames: colliders held at their frame-0 pose and forces
+        shifted in time by the settling (the same world, seen from the start of the settling)."""
+        if self.settle_frames == 0:
+            return self
+        S, shift = self.settle_frames, self.settle_frames * frame_dt
+        colliders = []
+        for c in self.colliders:
+            traj = c.trajectory()
+            colliders.append(RigidCollider(positions=torch.cat([traj[:1].expand(S, -1, -1), traj]), radius=c.radius))
+        forces = [replace(f, t_start=f.t_start + shift, t_end=f.t_end + shift) for f in self.forces]
+        return replace(self, colliders=colliders, forces=forces, settle_frames=0, settle_damping=None)
+
+    def damping_of_frame(self, frame: int, damping: float) -> float:
+        """The grid damping (1/s) of output frame ``frame`` of the settled rollout (settle frames first)."""
+        if frame < self.settle_frames and self.settle_damping is not None:
+            return self.settle_damping
+        return damping

@@ -159,14 +159,18 @@ class MPMEngine:
         scenario: sim box, gravity, anchors, forces, colliders.
         config: numerics (grid, frame interval, walls, damping, device).
         num_frames: T, output frames including the initial one (colliders must cover them).
+        frame_damping: grid damping (1/s) of each frame (e.g. stronger while settling); default
+            ``config.damping`` throughout.
     """
 
-    def __init__(self, particles: Particles, scenario: Scenario, config: MPMConfig, num_frames: int):
+    def __init__(self, particles: Particles, scenario: Scenario, config: MPMConfig, num_frames: int,
+                 frame_damping: list[float] | None = None):
         init_warp()
         self.device = dev = resolve_device(config.device)
         self.cfg = config
         self.box = scenario.box
         self.T = num_frames
+        self.frame_damping = frame_damping or [config.damping] * num_frames
         self.n = n = config.grid_res
         self.inv_dx = float(n)
         self.P = P = len(particles)
@@ -175,17 +179,17 @@ class MPMEngine:
         self._segments: dict[int, SegmentBuffers] = {}
 
         pinned = self._pinned(scenario, x0_world)
-        bc_kind = wp.zeros((n,) * 3, dtype=wp.int32, device=dev)
-        bc_normal = wp.zeros((n,) * 3, dtype=wp.vec3, device=dev)
-        self._bake_anchor_boxes(scenario, bc_kind, bc_normal)
+        kinds, normals = self._node_conditions(scenario)
+        bc_kind = wp.from_numpy(kinds, dtype=wp.int32, device=dev)
+        bc_normal = wp.from_numpy(normals.astype(np.float32), dtype=wp.vec3, device=dev)
         if pinned.any():
             # Pinned particles carry no mass (see kernels.p2g); the nodes they dominate at rest are held.
             x0_sim = wp.from_numpy(self.box.to_sim(torch.from_numpy(x0_world)).float().numpy(), dtype=wp.vec3, device=dev)
-            pin = wp.from_numpy(pinned, dtype=wp.int32, device=dev)
             w_pinned = wp.zeros((n,) * 3, dtype=float, device=dev)
             w_free = wp.zeros((n,) * 3, dtype=float, device=dev)
-            wp.launch(K.anchor_weights_to_grid, dim=P, device=dev, inputs=[x0_sim, pin, self.inv_dx, n, w_pinned, w_free])
-            wp.launch(K.anchored_nodes_to_bc, dim=(n,) * 3, device=dev, inputs=[w_pinned, w_free, bc_kind])
+            wp.launch(K.split_weights_to_grid, dim=P, device=dev, inputs=[
+                x0_sim, wp.from_numpy(pinned, dtype=wp.int32, device=dev), self.inv_dx, n, w_pinned, w_free])
+            wp.launch(K.dominated_nodes_to_bc, dim=(n,) * 3, device=dev, inputs=[w_pinned, w_free, bc_kind])
 
         region, self.forces = self._force_table(scenario, x0_world)
         pm = K.ParticleModel()
@@ -217,37 +221,41 @@ class MPMEngine:
             self.colliders.append((frames, float(radius)))
 
     # -- set-up ----------------------------------------------------------------------------------------
+    def _mask(self, mask, what: str) -> np.ndarray:
+        """[P] int32 of a per-particle boolean mask, checked against the particle count."""
+        m = np.asarray(torch.as_tensor(mask).cpu().numpy(), dtype=bool).reshape(-1)
+        if m.shape[0] != self.P:
+            raise SimulationError(f"{what} has {m.shape[0]} entries for {self.P} particles")
+        return m.astype(np.int32)
+
     def _pinned(self, scenario: Scenario, x0_world: np.ndarray) -> np.ndarray:
-        """[P] int32: particles of "fixed" anchors (by initial position in a box, or by mask)."""
+        """[P] int32: particles of "fixed" anchors (in their mask, or starting in their box or region)."""
         pinned = np.zeros(self.P, dtype=np.int32)
         for a in scenario.anchors:
-            if a.particle_mask is not None:
-                mask = np.asarray(torch.as_tensor(a.particle_mask).cpu().numpy(), dtype=bool).reshape(-1)
-                if mask.shape[0] != self.P:
-                    raise SimulationError(f"Anchor.particle_mask has {mask.shape[0]} entries for {self.P} particles")
-                pinned[mask] = 1
-            if a.lo is not None and a.kind == "fixed":
-                inside = ((x0_world >= np.asarray(a.lo, float)) & (x0_world <= np.asarray(a.hi, float))).all(1)
-                pinned[inside] = 1
+            if a.kind == "fixed":
+                if a.particle_mask is not None:
+                    pinned |= self._mask(a.particle_mask, "Anchor.particle_mask")
+                pinned |= a.contains(x0_world).astype(np.int32)
         return pinned
 
-    def _bake_anchor_boxes(self, scenario: Scenario, bc_kind: wp.array, bc_normal: wp.array) -> None:
-        s, dev = self.box.scale, self.device
-        boxes = []
-        for a in scenario.anchors:
-            if a.lo is None:
-                continue
-            lo, hi = np.asarray(a.lo, float), np.asarray(a.hi, float)
-            nrm = np.asarray(a.normal, float)
-            nrm = nrm / max(np.linalg.norm(nrm), 1e-12)
-            boxes.append(((lo - self.box.lo) * s, (hi - self.box.lo) * s, K.BC_SLIP if a.kind == "slip" else K.BC_STICKY, nrm))
-        if boxes:
-            wp.launch(K.node_boxes_to_bc, dim=(self.n,) * 3, device=dev, inputs=[
-                wp.array([b[0] for b in boxes], dtype=wp.vec3, device=dev),
-                wp.array([b[1] for b in boxes], dtype=wp.vec3, device=dev),
-                wp.array([b[2] for b in boxes], dtype=wp.int32, device=dev),
-                wp.array([b[3] for b in boxes], dtype=wp.vec3, device=dev),
-                len(boxes), 1.0 / self.inv_dx, bc_kind, bc_normal])
+    def _node_conditions(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+        """Per-node boundary-condition kinds [n, n, n] and normals [n, n, n, 3] of the anchors' boxes and
+        regions (unit-cube sim units share world directions). Later anchors win, sticky beats the others."""
+        n = self.n
+        kinds = np.zeros((n,) * 3, dtype=np.int32)
+        normals = np.zeros((n,) * 3 + (3,), dtype=np.float64)
+        code = {"fixed": K.BC_STICKY, "sticky": K.BC_STICKY, "slip": K.BC_SLIP, "support": K.BC_SUPPORT}
+        ax = np.arange(n, dtype=np.float64) * (self.box.size / n)
+        for i in range(n):  # one plane of nodes at a time keeps the memory bounded
+            nodes = np.stack(np.meshgrid([ax[i]], ax, ax, indexing="ij"), -1).reshape(-1, 3) + np.asarray(self.box.lo)
+            k_plane, n_plane = kinds[i].reshape(-1), normals[i].reshape(-1, 3)
+            for a in scenario.anchors:
+                inside = a.contains(nodes) & (k_plane != K.BC_STICKY)
+                if inside.any():
+                    k_plane[inside] = code[a.kind]
+                    if a.kind in ("slip", "support"):
+                        n_plane[inside] = a.normals(nodes[inside])
+        return kinds, normals
 
     def _force_table(self, scenario: Scenario, x0_world: np.ndarray) -> tuple[np.ndarray, K.ForceTable]:
         """One force region per particle (the last force listed wins where regions overlap)."""
@@ -314,7 +322,7 @@ class MPMEngine:
         wp.launch(K.p2g, dim=self.P, device=dev,
                   inputs=[s_in, self.particles, mats, self.forces, self.domain, t, dt, buf.grid])
         lo, hi = self.active_block(s_in.x)
-        damping_factor = math.exp(-self.cfg.damping * dt)
+        damping_factor = math.exp(-self.frame_damping[min(frame, self.T - 1)] * dt)
         v_max = 1.0 / (self.inv_dx * dt)  # one cell per substep (sim units)
         wp.launch(K.grid_update, dim=tuple(int(h - l + 1) for l, h in zip(lo, hi)), device=dev, inputs=[
             buf.grid, buf.col, 1 if self.colliders else 0, self.domain, dt, damping_factor, v_max,

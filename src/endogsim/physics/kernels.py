@@ -31,6 +31,7 @@ from endogsim.physics.polar import polar_rotation, proper_svd_rotations
 BC_FREE = 0
 BC_STICKY = 1
 BC_SLIP = 2
+BC_SUPPORT = 3  # separable: a node moving into the support stops, one moving away is free
 
 
 @wp.struct
@@ -306,6 +307,11 @@ def grid_update(
     elif kind == BC_SLIP:
         nrm = domain.bc_normal[i, j, k]
         v = v - wp.dot(v, nrm) * nrm
+    elif kind == BC_SUPPORT:
+        # Separable contact with friction: a node moving into the support stops (tissue pressed on the
+        # anatomy behind it does not slide on it); one moving away from it is free (it lifts off).
+        if wp.dot(v, domain.bc_normal[i, j, k]) < 0.0:
+            v = wp.vec3(0.0)
 
     # Domain walls: nodes within `pad` cells of a face. Slip walls only stop motion through the wall.
     idx = wp.vec3i(i, j, k)
@@ -389,38 +395,15 @@ def g2p(
 
 
 @wp.kernel
-def node_boxes_to_bc(
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
-    box_kind: wp.array(dtype=wp.int32),
-    box_normal: wp.array(dtype=wp.vec3),
-    n_boxes: int,
-    dx: float,
-    bc_kind: wp.array3d(dtype=wp.int32),
-    bc_normal: wp.array3d(dtype=wp.vec3),
-):
-    """Bake anchor boxes into per-node boundary conditions once (later boxes win; sticky beats slip)."""
-    i, j, k = wp.tid()
-    node = wp.vec3(float(i), float(j), float(k)) * dx
-    for b in range(n_boxes):
-        lo = box_lo[b]
-        hi = box_hi[b]
-        if node[0] >= lo[0] and node[0] <= hi[0] and node[1] >= lo[1] and node[1] <= hi[1] and node[2] >= lo[2] and node[2] <= hi[2]:
-            if bc_kind[i, j, k] != BC_STICKY:
-                bc_kind[i, j, k] = box_kind[b]
-                bc_normal[i, j, k] = box_normal[b]
-
-
-@wp.kernel
-def anchor_weights_to_grid(
+def split_weights_to_grid(
     x: wp.array(dtype=wp.vec3),
-    pinned: wp.array(dtype=wp.int32),
+    flag: wp.array(dtype=wp.int32),
     inv_dx: float,
     n: int,
-    w_pinned: wp.array3d(dtype=float),
-    w_free: wp.array3d(dtype=float),
+    w_flagged: wp.array3d(dtype=float),
+    w_other: wp.array3d(dtype=float),
 ):
-    """Splat each particle's B-spline weights onto the grid, pinned and free particles separately."""
+    """Splat each particle's B-spline weights onto the grid, flagged and other particles separately."""
     p = wp.tid()
     xp = x[p]
     base = stencil_base(xp, inv_dx, n)
@@ -430,20 +413,20 @@ def anchor_weights_to_grid(
         for j in range(3):
             for k in range(3):
                 w = W[i, 0] * W[j, 1] * W[k, 2]
-                if pinned[p] != 0:
-                    wp.atomic_add(w_pinned, base[0] + i, base[1] + j, base[2] + k, w)
+                if flag[p] != 0:
+                    wp.atomic_add(w_flagged, base[0] + i, base[1] + j, base[2] + k, w)
                 else:
-                    wp.atomic_add(w_free, base[0] + i, base[1] + j, base[2] + k, w)
+                    wp.atomic_add(w_other, base[0] + i, base[1] + j, base[2] + k, w)
 
 
 @wp.kernel
-def anchored_nodes_to_bc(
-    w_pinned: wp.array3d(dtype=float),
-    w_free: wp.array3d(dtype=float),
+def dominated_nodes_to_bc(
+    w_flagged: wp.array3d(dtype=float),
+    w_other: wp.array3d(dtype=float),
     bc_kind: wp.array3d(dtype=wp.int32),
 ):
     """Nodes that pinned particles dominate at rest hold still (sticky), like the anchored tissue itself."""
     i, j, k = wp.tid()
-    wpin = w_pinned[i, j, k]
-    if wpin > 0.0 and wpin >= w_free[i, j, k]:
+    wf = w_flagged[i, j, k]
+    if wf > 0.0 and wf >= w_other[i, j, k]:
         bc_kind[i, j, k] = BC_STICKY

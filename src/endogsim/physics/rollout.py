@@ -40,6 +40,15 @@ from endogsim.physics.stability import check_materials, plan_substeps
 __all__ = ["SimResult", "Simulator", "simulate", "mpm_rollout"]
 
 
+def _check_adjoints(frame: int, adj_state, adj_mats) -> None:
+    """Refuse NaN/inf adjoints of the backward pass, naming the frame and the quantity (never a silent zero)."""
+    names = ("positions", "velocities", "affine matrices C", "deformation gradients F")
+    for name, a in list(zip(names, adj_state)) + list(zip(("E", "nu", "density"), adj_mats)):
+        if not bool(torch.isfinite(a).all()):
+            raise SimulationError(f"the backward pass through the simulator produced NaN/inf in frame {frame}: "
+                                  f"the adjoint of the {name} (a state the rollout reached without NaN)")
+
+
 class _MPMRolloutFn(torch.autograd.Function):
     """Sim-unit autograd op: (x0, v0, *differentiable materials) -> (positions [T,P,3], F [T,P,3,3]).
 
@@ -86,6 +95,7 @@ class _MPMRolloutFn(torch.autograd.Function):
             else:
                 start, first = ctx.states[f - 1], 0
             adj_start, adj_m = eng.backprop_segment(seg, mats, step, start, adj_end, f - 1, first)
+            _check_adjoints(f, adj_start, adj_m)
             for acc, a in zip(g_mats, adj_m):
                 acc += a.double()
             if mode == "full":
@@ -147,9 +157,27 @@ class Simulator:
 
     @property
     def engine(self) -> MPMEngine:
+        """The engine over the settling frames and the clip (built on first use)."""
         if self._engine is None:
-            self._engine = MPMEngine(self.particles, self.scenario, self.config, self.num_frames)
+            self._engine = MPMEngine(self.particles, self.scenario.with_settling(self.config.frame_dt), self.config,
+                                     self.scenario.settle_frames + self.num_frames, frame_damping=self._frame_damping())
         return self._engine
+
+    def _frame_damping(self) -> list[float]:
+        """Grid damping (1/s) of every frame of the rollout over settling + clip."""
+        sc = self.scenario
+        return [sc.damping_of_frame(f, self.config.damping) for f in range(sc.settle_frames + self.num_frames)]
+
+    def _clip(self, xs: torch.Tensor, Fs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The clip's frames of a rollout over settling + clip (see :attr:`Scenario.settle`)."""
+        S = self.scenario.settle_frames
+        if S == 0:
+            return xs, Fs
+        if self.scenario.settle == "keep":
+            return xs[S:], Fs[S:]
+        sag = xs[S] - xs[0]
+        F_rest_inv = torch.linalg.inv(Fs[S].double()).to(Fs.dtype)
+        return xs[S:] - sag, Fs[S:] @ F_rest_inv
 
     def timestep(self, materials: ObjectMaterials, v0: torch.Tensor | None = None) -> Timestep:
         """The CFL-respecting substeps for these materials (checked: impossible values are refused)."""
@@ -182,7 +210,7 @@ class Simulator:
         xs, Fs = _MPMRolloutFn.apply(x0_sim, v0_sim, self.engine, step, grad_mode, self._static(materials), *diff)
         positions = box.to_world(xs.to(torch.float64)).to(x0.dtype)
         # Index 0 is exactly the input (no float32 round trip), so its gradient is the identity.
-        return torch.cat([x0[None], positions[1:]], 0), Fs
+        return self._clip(torch.cat([x0[None], positions[1:]], 0), Fs)
 
     def simulate(self, materials: ObjectMaterials, v0: torch.Tensor | None = None) -> SimResult:
         """Forward rollout without gradients (see :func:`simulate`)."""
@@ -197,7 +225,7 @@ class Simulator:
                                             box.vec_to_sim(v0.double()).float().cpu(), mats, step, keep_before_last=False)
             xs = box.to_world(stack_arrays([s[0] for s in states]).double()).to(x0.dtype)
             xs[0] = x0
-            Fs = stack_arrays([s[3] for s in states])
+            xs, Fs = self._clip(xs, stack_arrays([s[3] for s in states]))
         times = torch.arange(self.num_frames, dtype=torch.float64) * self.config.frame_dt
         return SimResult(xs, Fs, times, step.substeps, step.dt,
                          [c.trajectory()[: self.num_frames].to(x0.dtype) for c in self.scenario.colliders])

@@ -23,9 +23,10 @@ import torch
 from endogsim.errors import DataError, MaterialError, SimulationError
 from endogsim.io.atomic import write_json_atomic
 from endogsim.materials.field import MaterialField
+from endogsim.gaussians.model import covariance_to_scale_rot
 from endogsim.pipeline.interaction import Interaction, Located, load_interaction
 
-__all__ = ["resolve_scene", "surface_point", "build_interaction", "simulate_interaction", "covariance_to_scale_rot"]
+__all__ = ["resolve_scene", "surface_point", "build_interaction", "simulate_interaction"]
 
 def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
     """The scene folder and the default materials file for a scene folder or a run folder.
@@ -46,22 +47,6 @@ def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
             return folder, mats if mats.is_file() else None
         raise DataError(f"{p}/metrics.json names scene folder {str(folder)!r}, which has no scene.json")
     raise DataError(f"{p}: neither a scene folder (scene.json) nor a run folder (metrics.json / scene/)")
-
-
-def covariance_to_scale_rot(covs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Log axis scales [N, 3] (log metres) and quaternions [N, 4] (w, x, y, z) of covariances [N, 3, 3].
-
-    The inverse of :func:`endogsim.gaussians.model.covariance_from_scale_rot` (eigen-decomposition; the
-    eigenvector frame is made right-handed so it is a rotation).
-    """
-    from endogsim.gaussians.model import rotmat_to_quat
-
-    sym = 0.5 * (covs + covs.mT).double()
-    evals, evecs = torch.linalg.eigh(sym)
-    flip = torch.linalg.det(evecs) < 0
-    evecs[flip, :, 0] = -evecs[flip, :, 0]
-    log_scales = 0.5 * torch.log(evals.clamp_min(1e-24))
-    return log_scales.to(covs.dtype), rotmat_to_quat(evecs).to(covs.dtype)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -94,7 +79,7 @@ def surface_point(problem, loc: Located) -> np.ndarray:
     u, v = loc.at if loc.at is not None else (0.0, 0.0)
     lo, hi = x[:, :2].min(0), x[:, :2].max(0)
     target = 0.5 * (lo + hi) + np.array([u, v]) * 0.5 * (hi - lo)
-    spacing = float(problem.spec.scenario.particle_spacing)
+    spacing = problem.spec.scenario.spacing(problem.spec.scenario.identification)
     near = np.linalg.norm(x[:, :2] - target, axis=1) <= 1.5 * spacing
     if not near.any():
         raise DataError(f"at = [{u}, {v}] lies off the tissue of scene {problem.spec.name!r} (no particle within "

@@ -9,9 +9,9 @@ A scene folder (``endogsim synth``, or any folder laid out the same way) gives:
   * ``scene.json``: objects (ids, names, classes, rigid flags, ground truth where known), camera, and the
     scenario: sim box, gravity, damping, boundary conditions, tool capsules with their per-frame rigid
     transforms (the observed tool trajectory) and the identification discretisation,
-  * ``particles_t0.npz``: the particle layout with its anchored (boundary-condition) flags. Without it the
-    particles are made from the deformable Gaussians (extruded along the viewing rays by the scenario's
-    thickness) and the boundary conditions are rebuilt from their description in ``scene.json``.
+  * the particles are made from the deformable objects' frame-0 Gaussians, filling the scenario's
+    thickness behind them (:mod:`endogsim.scene.particles`), with the boundary conditions of
+    ``scene.json`` (a benchmark's ground-truth particles, ``particles_ground_truth.npz``, are never read).
 
 :func:`load_sim_scene` turns that into an :class:`SimScene` holding the simulator's inputs
 (:class:`~endogsim.physics.Particles`, :class:`~endogsim.physics.Scenario`, :class:`~endogsim.physics.MPMConfig`)
@@ -32,7 +32,6 @@ from endogsim.gaussians.model import Gaussians
 from endogsim.io.images import read_grey, read_rgb
 from endogsim.io.scene import ObjectLabel
 from endogsim.physics import (
-    Anchor,
     GaussianBinding,
     MPMConfig,
     Particles,
@@ -42,8 +41,8 @@ from endogsim.physics import (
     Simulator,
     bind_gaussians,
     capsule_collider_points,
-    particles_from_gaussians,
 )
+from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces
 from endogsim.scene.schema import SceneSpec, load_scene_spec
 
 __all__ = ["SimScene", "load_sim_scene", "read_observations"]
@@ -128,42 +127,6 @@ def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.nd
     return out_frames, masks, flow, valid
 
 
-def _particles_without_file(g: Gaussians, spec: SceneSpec, camera: Camera, deformable: list[int]) -> tuple[Particles, np.ndarray]:
-    """Particles from the deformable Gaussians and the anchors rebuilt from the scene's description.
-
-    Back face: the deepest extrusion layer (along the viewing ray); border: particles within ``border``
-    metres (in the image-parallel plane) of the object's outline.
-    """
-    sc = spec.scenario
-    thick = sc.extrusion.get("thickness", {}) if isinstance(sc.extrusion, dict) else {}
-    parts, anchored = [], []
-    for oid in deformable:
-        name = spec.object(oid).name
-        t = float(thick.get(name, 0.0)) if isinstance(thick, dict) else float(thick)
-        p = particles_from_gaussians(g, sc.particle_spacing, [oid], thickness=t, camera=camera if t > 0 else None)
-        bc = next((b for b in sc.boundary_conditions if b.get("type") == "anchors" and b.get("object") == name), {})
-        x = p.x.double().numpy()
-        a = np.zeros(len(x), bool)
-        gm = g.means[g.object_ids == oid].detach().double().numpy()
-        if bc.get("back_face", False) and t > 0:
-            from scipy.spatial import cKDTree
-
-            _, nb = cKDTree(gm).query(x, k=1)
-            depth_behind = np.linalg.norm(x, axis=1) - np.linalg.norm(gm[nb], axis=1)
-            a |= depth_behind >= t - sc.particle_spacing * 0.75
-        band = float(bc.get("border", 0.0))
-        if band > 0:
-            import cv2
-
-            # Distance to the outline in the plane of the image (x, y), from the Gaussians' convex footprint.
-            hull = cv2.convexHull(gm[:, :2].astype(np.float32))
-            d = np.array([cv2.pointPolygonTest(hull, (float(px), float(py)), True) for px, py in x[:, :2]])
-            a |= d < band
-        parts.append(p)
-        anchored.append(a)
-    return Particles.concat(parts), np.concatenate(anchored)
-
-
 def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu") -> SimScene:
     """Read a scene folder into an :class:`SimScene`.
 
@@ -201,16 +164,10 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     ident = sc.identification
     box = SimBox(tuple(float(v) for v in sc.box_lo), float(sc.box_size))
     dx = box.size / ident.grid
-    pfile = folder / spec.files.get("particles_t0", "particles_t0.npz")
-    if pfile.is_file():
-        d = np.load(pfile)
-        keep = np.isin(d["object_id"], deformable)
-        particles = Particles(torch.as_tensor(d["x"][keep], dtype=torch.float32),
-                              torch.as_tensor(d["vol"][keep], dtype=torch.float32),
-                              torch.as_tensor(d["object_id"][keep], dtype=torch.int64))
-        anchored = d["anchored"][keep].astype(bool)
-    else:
-        particles, anchored = _particles_without_file(g, spec, camera, deformable)
+    # Particles always come from the frame-0 Gaussians and the scenario's description, as on a real video
+    # (a benchmark's ground-truth particles are never read: identifying from them would be an inverse crime).
+    filled = build_particles(gaussian_surfaces(g, deformable), spec, camera, ident)
+    particles = filled.particles
 
     colliders, tool_tf = [], {}
     for tool in sc.tools:
@@ -220,8 +177,9 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         pts, rad = capsule_collider_points(tool.tip, tool.end, tool.radius, dx)
         colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=tf, radius=rad))
         tool_tf[tool.object_id] = tf
-    anchors = [Anchor(kind="fixed", particle_mask=torch.as_tensor(anchored))] if anchored.any() else []
-    scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=anchors, colliders=colliders)
+    scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=filled.anchors(),
+                        forces=scenario_forces(spec, particles), colliders=colliders,
+                        settle_frames=int(sc.settle_frames), settle="subtract", settle_damping=sc.settle_damping)
     walls = next((int(b.get("cells", 2)) for b in sc.boundary_conditions if b.get("type") == "box_walls"), 2)
     mpm = MPMConfig(grid_res=int(ident.grid), frame_dt=float(sc.frame_dt), substeps_per_frame=int(ident.substeps),
                     dt=None, damping=float(sc.damping), wall="sticky", wall_padding=max(2, walls), device=device)

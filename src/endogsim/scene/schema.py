@@ -17,9 +17,10 @@ import numpy as np
 
 from endogsim.errors import DataError
 
-__all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ScenarioSpec", "CameraSpec", "SceneSpec", "load_scene_spec"]
+__all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ObjectBoundary", "ScenarioSpec", "CameraSpec", "SceneSpec",
+           "load_scene_spec"]
 
-SCENE_JSON_VERSION = 1
+SCENE_JSON_VERSION = 2
 
 
 @dataclass
@@ -58,19 +59,60 @@ class ToolCapsule:
 @dataclass
 class SimSettings:
     """MPM discretisation: ``grid`` cells per edge of the cubic sim box, substep ``dt`` (s), ``substeps`` per
-    frame, and the largest CFL number c_p dt / dx over the deformable objects at these settings."""
+    frame (the least; the CFL rule may take more for stiffer materials), the largest CFL number c_p dt / dx
+    over the deformable objects at these settings, and the ``particle_spacing`` (metres) of the lattice
+    that fills the tissue (half a cell: two particles per cell and axis)."""
 
     grid: int
     dt: float
     substeps: int
     cfl: float
+    particle_spacing: float | None = None
+
+
+@dataclass
+class ObjectBoundary:
+    """The boundary conditions of one deformable object (a ``{"type": "anchors", "object": NAME, ...}`` entry
+    of ``scenario.boundary_conditions``).
+
+    Attributes:
+        back_face: what holds the hidden back of the tissue (the deepest particle layer of its slab):
+            "fixed" (glued to the anatomy behind), "support" (resting on it: pushed, never pulled, so it can be
+            lifted off) or "free".
+        border: width (metres) of the band along the object's outline that is held fixed (the tissue goes
+            on beyond the view); 0 for none.
+        release: (centre [x, y] metres, radius metres) of a disc where the back face is free, or None.
+    """
+
+    back_face: str = "fixed"
+    border: float = 0.0
+    release: tuple[tuple[float, float], float] | None = None
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "ObjectBoundary":
+        back = d.get("back_face", False)
+        back = {True: "fixed", False: "free"}.get(back, back) if isinstance(back, bool) else str(back)
+        if back not in ("fixed", "support", "free"):
+            raise DataError(f"boundary condition back_face {back!r} is not fixed|support|free")
+        rel = d.get("release")
+        release = None if rel is None else ((float(rel["center"][0]), float(rel["center"][1])), float(rel["radius"]))
+        return ObjectBoundary(back, float(d.get("border", 0.0)), release)
 
 
 @dataclass
 class ScenarioSpec:
     """The scenario: sim box (world corner ``box_lo`` and edge ``box_size`` in metres; world -> sim is
-    (x - box_lo) / box_size), gravity (m/s^2, world), boundary conditions, tools, the particle layout and
-    two discretisations: ``ground_truth`` (used to make the video) and ``identification`` (defaults)."""
+    (x - box_lo) / box_size), gravity (m/s^2, world), damping (1/s), boundary conditions, tools, the
+    tissue's thickness behind its visible surface (``extrusion``), the settling before frame 0 and two
+    discretisations: ``ground_truth`` (used to make the video; finer) and ``identification`` (defaults).
+
+    ``settle_frames``: frames simulated before frame 0 under gravity with the tools still, so that frame 0
+    is the tissue's equilibrium, with grid damping ``settle_damping`` (1/s; None: ``damping``) to reach it
+    in those few frames (see :class:`endogsim.physics.Scenario`).
+    ``forces``: what else drives the tissue; an impulse (the paper's protocol) is
+    ``{"type": "impulse", "object": NAME, "center": [x, y, z], "radius": m, "velocity": [vx, vy, vz] m/s,
+    "t_start": s}``: every particle of the object within ``radius`` of ``center`` gets the velocity at t_start.
+    """
 
     box_lo: list[float]
     box_size: float
@@ -79,10 +121,31 @@ class ScenarioSpec:
     damping: float
     boundary_conditions: list[dict[str, Any]]
     tools: list[ToolCapsule]
-    particle_spacing: float
     extrusion: dict[str, Any]
     ground_truth: SimSettings
     identification: SimSettings
+    settle_frames: int = 0
+    settle_damping: float | None = None
+    forces: list[dict[str, Any]] = field(default_factory=list)
+    particle_spacing: float | None = None  # scene.json version 1: the one spacing of both discretisations
+
+    def thickness(self, name: str) -> float:
+        """The slab thickness (metres) of object ``name`` behind its visible surface (0: a solid sample)."""
+        thick = self.extrusion.get("thickness", 0.0) if isinstance(self.extrusion, dict) else 0.0
+        return float(thick.get(name, 0.0)) if isinstance(thick, dict) else float(thick)
+
+    def boundary(self, name: str) -> ObjectBoundary:
+        """The boundary conditions of object ``name`` (or of "all_tissue"); none when unlisted."""
+        for b in self.boundary_conditions:
+            if b.get("type") == "anchors" and b.get("object") in (name, "all_tissue"):
+                return ObjectBoundary.from_json(b)
+        return ObjectBoundary(back_face="free")
+
+    def spacing(self, settings: SimSettings) -> float:
+        """The particle spacing (metres) of a discretisation: its own, or half its cell."""
+        if settings.particle_spacing:
+            return float(settings.particle_spacing)
+        return float(self.particle_spacing) if self.particle_spacing else self.box_size / settings.grid / 2
 
 
 @dataclass

@@ -32,16 +32,11 @@ from endogsim.io.labels import (
     UNLABELLED,
 )
 from endogsim.materials.prior import prior_entry
-from endogsim.physics import MPMConfig, max_stable_E
 from endogsim.priors.depth import fallback_depth
 from endogsim.scene.motion import tool_capsule, tool_offsets
 from endogsim.scene.schema import SceneObject
 from endogsim.synth import procedural as proc
-from endogsim.synth.scenes import (
-    BuiltScene,
-    ground_truth_and_identification,
-    tissue_from_surface,
-)
+from endogsim.synth.scenes import BuiltScene, scene_discretisations
 from endogsim.synth.suite import load_suite
 
 __all__ = ["build_from_data", "CHOLECSEG_CLASSES", "read_first_frame"]
@@ -51,7 +46,8 @@ __all__ = ["build_from_data", "CHOLECSEG_CLASSES", "read_first_frame"]
 CHOLECSEG_CLASSES = {lab.id: (lab.klass, lab.klass, lab.is_tool) for lab in CHOLECSEG8K_LABELS.values()
                      if lab.id not in CHOLECSEG8K_NON_OBJECTS}
 CHOLECSEG_CLASSES[CHOLECSEG8K_UNLABELLED_VALUE] = ("unlabelled", "unknown_tissue", False)
-PAPER_SUBSTEPS = 25  # the paper's 25 x 2e-4 s per 5 ms frame
+THICKNESS = 0.008  # metres of tissue behind the visible surface
+BORDER = 0.005  # metres of the anchored band along each tissue object's outline
 
 def _prior(klass: str, is_tool: bool = False) -> tuple[float, float, float, str]:
     """(E Pa, nu, density kg/m^3, where from) of a class, in the in-vivo regime."""
@@ -132,7 +128,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
 
     # Ground-truth materials: the class prior, E perturbed by a factor in [1/1.5, 1.5]; nu capped at 0.45
     # (near-incompressible values would need far smaller substeps, DESIGN.md section 4) minus up to 0.04.
-    ident = load_suite()["defaults"]
+    suite = load_suite()["defaults"]
     objects: list[SceneObject] = []
     mat_sources = set()
     for cid in present:
@@ -163,23 +159,6 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     if not soft:
         raise DataError(f"{data_dir}: frame 0 shows no tissue to simulate")
 
-    # Particles on a coarser pixel lattice, extruded along the rays; anchored at the back and near the
-    # field-of-view border (distance transform of the kept region, in metres).
-    p_sp = 0.0025
-    stride = max(1, round(p_sp / float(np.median(foot))))
-    edge_px = cv2.distanceTransform(np.pad(keep, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    lattice = np.zeros((H, W), bool)
-    lattice[stride // 2::stride, stride // 2::stride] = True
-    parts = []
-    for o in soft:
-        m = lattice & (classes == o.id)
-        if not m.any():
-            continue
-        part = tissue_from_surface(px[m], edge_px[m] * foot[m], 0.008, p_sp,
-                                   {"back_face": True, "border": 0.005}, o.id, cam)
-        parts.append(part)
-    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
     # The synthetic tool touches the tissue object with the deepest interior point, at that point
     # (away from object boundaries and the field-of-view border).
     def interior(o):
@@ -198,9 +177,6 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
         kf = [[0, 0, 0, 0], [0.6, 0, 0, 0.006], [1.0, 0.002, 0.001, 0.006]]
     else:
         kf = [[0, 0, 0, 0], [0.6, 0, 0, -0.006], [1.0, 0.002, -0.001, -0.007]]
-        rel = np.linalg.norm(cat["x"][:, :2] - contact[None, :2], axis=1) < 0.02
-        back_layer = cat["anchored"] & rel & (np.linalg.norm(cat["x"], axis=1) > np.linalg.norm(contact) + 0.004)
-        cat["anchored"] = cat["anchored"] & ~back_layer
     tool_obj_id = max(o.id for o in objects) + 1 if 31 in tool_ids or 32 in tool_ids else 31
     if tool_obj_id in {o.id for o in objects}:
         tool_obj_id = max(o.id for o in objects) + 1
@@ -211,22 +187,15 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     offsets = tool_offsets(kf, T)
     tool = tool_capsule(tool_obj_id, tip, end, radius, offsets)
 
-    # Cubic sim box around the particles and the tool's path through the tissue.
-    tissue_pts = np.concatenate([cat["x"], pts[~np.isin(ids, list(tool_ids))]])
-    lo = np.minimum(tissue_pts.min(0), (tip + offsets.min(0)))
-    hi = np.maximum(tissue_pts.max(0), (tip + offsets.max(0)))
-    coarsest = min(int(ident["gt_grid"]), int(ident["ident_grid"]))  # 3 wall cells of either grid stay clear
-    size = float((hi - lo).max()) / (1 - 2 * 3 / coarsest) + 0.004
+    # Cubic sim box around the tissue's slab (its surface and the same surface THICKNESS behind) and the
+    # tool's path, with room for the walls.
+    surface = pts[~np.isin(ids, list(tool_ids))]
+    slab = np.concatenate([surface, surface * (1 + THICKNESS / np.linalg.norm(surface, axis=1, keepdims=True))])
+    lo = np.minimum(slab.min(0), tip + offsets.min(0))
+    hi = np.maximum(slab.max(0), tip + offsets.max(0))
+    size = float((hi - lo).max()) * 1.15 + 0.004
     box_lo = (lo + hi) / 2 - size / 2
-
-    # Keep every object inside the stability limit (CFL <= 0.45) of the paper's 25 substeps per frame, the
-    # coarser of it and the suite's identification dt: the materials then stay simulable at either.
-    substeps = min(PAPER_SUBSTEPS, max(1, round(ident["frame_dt"] / ident["ident_dt"])))
-    ident_cfg = MPMConfig(grid_res=int(ident["ident_grid"]), frame_dt=float(ident["frame_dt"]),
-                          substeps_per_frame=substeps, cfl_number=0.45)
-    for o in soft:
-        o.E = min(o.E, max_stable_E(o.nu, o.density, ident_cfg, size))
-    gt, idn = ground_truth_and_identification(ident, objects, size, [tool], name or data_dir.name)
+    gt, idn = scene_discretisations(suite, objects, size, [tool], THICKNESS)
 
     allg = Gaussians.concat([g, tool_g])
     n_g = len(g)
@@ -236,16 +205,16 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     is_tool[n_g:] = True
     name = name or data_dir.name
     return BuiltScene(
-        name=name, camera=cam, frames=T, frame_dt=ident["frame_dt"], gaussians=allg, tissue_gaussians=is_tissue,
-        tool_gaussians={tool_obj_id: is_tool}, particles=cat["x"], particle_ids=cat["ids"], particle_vol=cat["vol"],
-        anchored=cat["anchored"], objects=objects, tools=[tool], box_lo=box_lo, box_size=size,
-        gravity=np.asarray(ident["gravity"], float), damping=ident["damping"], ground_truth=gt, identification=idn,
+        name=name, camera=cam, frames=T, frame_dt=suite["frame_dt"], gaussians=allg, tissue_gaussians=is_tissue,
+        tool_gaussians={tool_obj_id: is_tool}, objects=objects, tools=[tool], box_lo=box_lo, box_size=size,
+        gravity=np.asarray(suite["gravity"], float), damping=suite["damping"], ground_truth=gt, identification=idn,
+        settle_frames=int(suite["settle_frames"]), settle_damping=suite.get("settle_damping"),
         boundary_conditions=[{"type": "box_walls", "cells": 2},
-                             {"type": "anchors", "object": "all_tissue", "back_face": True, "border": 0.005,
+                             {"type": "anchors", "object": "all_tissue", "back_face": "fixed", "border": BORDER,
                               **({"release": {"center": contact[:2].tolist(), "radius": 0.02}} if interaction == "pull" else {})},
                              {"type": "static", "objects": [labels[c][0] for c in present if labels[c][2]]}],
-        extrusion={"along": "viewing_rays", "thickness": 0.008}, particle_spacing=p_sp, source=str(data_dir),
+        extrusion={"along": "viewing_rays", "thickness": THICKNESS}, source=str(data_dir),
         extra={"depth_source": depth_source, "interaction": interaction, "downscale": s,
                "layout": fr["format"], "material_source": f"{', '.join(sorted(mat_sources))} x deterministic perturbation (seed {seed}), "
-                                  "E capped at CFL 0.45 for the identification defaults"},
+                                  "substeps from the CFL rule"},
     )

@@ -8,15 +8,17 @@ Folder written by :func:`synthesize` (T frames, H x W pixels, names as in EndoNe
   flow/frame-%06d.flow.npy          float32 [H, W, 2] ground-truth optical flow t -> t+1 (pixels), t < T-1
   flow/frame-%06d.valid.png         8-bit, 255 where the flow is defined (rendered alpha > 0.95)
   poses_bounds.npy                  (T, 17) LLFF: identity pose, [H, W, focal], near, far (metres)
-  gaussians_t0.ply                  ground-truth Gaussians of frame 0 with object ids
-  particles_t0.npz                  MPM particles: x [P, 3] m, object_id [P], vol [P] m^3, anchored [P]
+  gaussians_t0.ply                  ground-truth Gaussians of frame 0 (the settled, observed state), object ids
+  particles_ground_truth.npz        the ground truth's particles: x [P, 3] m, object_id [P], vol [P] m^3,
+                                    pinned [P] (for inspection: identification never reads it)
   scene.json                        objects, scenario, camera, seed (see endogsim.scene.schema)
 
-The ground truth is simulated by the Warp MLS-MPM of :mod:`endogsim.physics` -- the same simulator
-identification differentiates -- at the scene's ``ground_truth`` discretisation (both it and
-``identification`` are in scene.json). The suite's default is identification's own, as in the paper; a finer
-one (``gt_grid``, ``gt_refine``) is possible, but at about one particle per cell it mostly measures the
-simulator's discretisation error (see the suite's description). Gaussians follow the particles by :func:`endogsim.physics.bind_gaussians` /
+The ground truth is simulated by the Warp MLS-MPM of :mod:`endogsim.physics` at the scene's
+``ground_truth`` discretisation, finer than identification's (2x the grid, half the particle spacing, 2x the
+substeps; both in scene.json), from particles filling the objects' true surfaces (identification fills the
+frame-0 Gaussians instead, as on a real video). The tissue first settles under gravity for
+``settle_frames`` with the tools still: frame 0 is its equilibrium, as a video shows tissue at rest.
+Gaussians follow the particles by :func:`endogsim.physics.bind_gaussians` /
 :func:`endogsim.physics.drive_gaussians`, and tools move rigidly with their per-frame transforms.
 
 The ground-truth flow is the Gaussian flow (:mod:`endogsim.gaussians.flow`) of the simulated Gaussians,
@@ -37,18 +39,19 @@ from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
 from endogsim.io.atomic import atomic_folder, write_json_atomic
+from endogsim.gaussians.model import Gaussians, covariance_to_scale_rot
 from endogsim.physics import (
-    Anchor,
     MPMConfig,
     ObjectMaterials,
-    Particles,
     RigidCollider,
     Scenario,
     SimBox,
     bind_gaussians,
+    capsule_collider_points,
     drive_gaussians,
     simulate,
 )
+from endogsim.scene.particles import SceneParticles, build_particles, gaussian_surfaces, scenario_forces
 from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
 from endogsim.synth.scenes import BuiltScene, build_procedural
 from endogsim.synth.suite import GENERATOR_REVISION
@@ -63,21 +66,19 @@ def _wall_cells(b: BuiltScene) -> int:
     return next((int(bc.get("cells", 2)) for bc in b.boundary_conditions if bc.get("type") == "box_walls"), 2)
 
 
-def ground_truth_problem(b: BuiltScene) -> tuple[Particles, ObjectMaterials, Scenario, MPMConfig]:
+def ground_truth_problem(b: BuiltScene) -> tuple[SceneParticles, ObjectMaterials, Scenario, MPMConfig]:
     """The ground-truth simulation of a built scene for :func:`endogsim.physics.simulate`.
 
-    Returns particles, the per-object ground-truth materials (E Pa, nu, density kg/m^3, constitutive model),
-    the scenario (sim box, gravity, anchored particles, capsule tools as point colliders) and the
-    ``ground_truth`` numerics.
+    Returns the particles (the objects' true surfaces filled at the ground truth's spacing, with their
+    boundary conditions, :mod:`endogsim.scene.particles`), the per-object ground-truth materials, the
+    scenario (sim box, gravity, anchors, forces, capsule tools as point colliders, settling kept as frame 0)
+    and the ``ground_truth`` numerics.
     """
-    from endogsim.physics import (
-        capsule_collider_points,  # the same covering as identification
-    )
-
     gt = b.ground_truth
-    particles = Particles(torch.as_tensor(b.particles, dtype=torch.float32),
-                          torch.as_tensor(b.particle_vol, dtype=torch.float32),
-                          torch.as_tensor(b.particle_ids, dtype=torch.int64))
+    spec = _scene_spec(b, seed=0)
+    deformable = [o.id for o in b.objects if not o.rigid]
+    rest_tissue = b.gaussians.subset(torch.from_numpy(b.tissue_gaussians))
+    filled = build_particles(gaussian_surfaces(rest_tissue, deformable, min_opacity=0.0), spec, b.camera, gt)
     M = max(o.id for o in b.objects) + 1
     E, nu, rho, model = [1.0] * M, [0.0] * M, [1.0] * M, ["fixed_corotated"] * M
     for o in b.objects:
@@ -90,32 +91,34 @@ def ground_truth_problem(b: BuiltScene) -> tuple[Particles, ObjectMaterials, Sce
         pts, radius = capsule_collider_points(tool.tip, tool.end, tool.radius, b.box_size / gt.grid)
         colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(tool.matrices()),
                                        radius=radius))
-    anchors = [Anchor(kind="fixed", particle_mask=torch.as_tensor(b.anchored))] if b.anchored.any() else []
     scenario = Scenario(SimBox(tuple(float(v) for v in b.box_lo), float(b.box_size)),
-                        gravity=tuple(float(v) for v in b.gravity), anchors=anchors, colliders=colliders)
-    config = MPMConfig(grid_res=gt.grid, frame_dt=b.frame_dt, substeps_per_frame=gt.substeps, dt=gt.dt,
+                        gravity=tuple(float(v) for v in b.gravity), anchors=filled.anchors(),
+                        forces=scenario_forces(spec, filled.particles), colliders=colliders,
+                        settle_frames=b.settle_frames, settle="keep", settle_damping=b.settle_damping)
+    config = MPMConfig(grid_res=gt.grid, frame_dt=b.frame_dt, substeps_per_frame=gt.substeps, dt=None,
                        damping=b.damping, wall="sticky", wall_padding=max(2, _wall_cells(b)))
-    return particles, materials, scenario, config
+    return filled, materials, scenario, config
 
 
-def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor]:
+def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, SceneParticles]:
     """Run the ground-truth simulation and drive the tissue Gaussians with it.
 
-    Returns tissue means [T, Gt, 3] (metres) and covariances [T, Gt, 3, 3] (metres^2) = F Sigma_0 F^T.
+    Returns tissue means [T, Gt, 3] (metres) and covariances [T, Gt, 3, 3] (metres^2) = F Sigma_0 F^T per
+    frame (frame 0: the equilibrium after settling), and the ground truth's particles.
     """
-    particles, materials, scenario, config = ground_truth_problem(b)
-    res = simulate(particles, materials, scenario, config, b.frames)
+    filled, materials, scenario, config = ground_truth_problem(b)
+    res = simulate(filled.particles, materials, scenario, config, b.frames)
     if res.substeps != b.ground_truth.substeps:  # plan_substeps saw the same inputs when the scene was built
         raise SimulationError(f"scene {b.name}: the simulator took {res.substeps} substeps per frame, "
                               f"scene.json records {b.ground_truth.substeps}")
     tissue = b.gaussians.subset(torch.from_numpy(b.tissue_gaussians))
-    binding = bind_gaussians(tissue.means, tissue.object_ids, particles)
+    binding = bind_gaussians(tissue.means, tissue.object_ids, filled.particles)
     means, covs = [], []
     for t in range(b.frames):
         m, c, _ = drive_gaussians(tissue, binding, res.positions[t], res.F[t], rotate_colors=False)
         means.append(m)
         covs.append(c)
-    return torch.stack(means), torch.stack(covs)
+    return torch.stack(means), torch.stack(covs), filled
 
 
 def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):
@@ -172,8 +175,8 @@ def _scene_spec(b: BuiltScene, seed: int) -> SceneSpec:
     scenario = ScenarioSpec(
         box_lo=[float(v) for v in b.box_lo], box_size=float(b.box_size), gravity=[float(v) for v in b.gravity],
         frame_dt=float(b.frame_dt), damping=float(b.damping), boundary_conditions=b.boundary_conditions,
-        tools=list(b.tools), particle_spacing=float(b.particle_spacing), extrusion=b.extrusion,
-        ground_truth=b.ground_truth, identification=b.identification,
+        tools=list(b.tools), extrusion=b.extrusion, ground_truth=b.ground_truth, identification=b.identification,
+        settle_frames=int(b.settle_frames), settle_damping=b.settle_damping, forces=list(b.forces),
     )
     cam = CameraSpec(K=b.camera.K.double().tolist(), width=b.camera.width, height=b.camera.height,
                       viewmat=b.camera.viewmat.double().tolist())
@@ -183,13 +186,15 @@ def _scene_spec(b: BuiltScene, seed: int) -> SceneSpec:
         files={"images": "images/frame-%06d.color.png", "depth": "depth/frame-%06d.depth.png",
                "masks": "masks/frame-%06d.mask.png", "object_masks": "object_masks/frame-%06d.png",
                "flow": "flow/frame-%06d.flow.npy", "flow_valid": "flow/frame-%06d.valid.png",
-               "gaussians_t0": "gaussians_t0.ply", "particles_t0": "particles_t0.npz"},
+               "gaussians_t0": "gaussians_t0.ply", "particles_ground_truth": "particles_ground_truth.npz"},
     )
 
 
-def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path:
+def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int, frame0: Gaussians,
+                       particles: SceneParticles) -> Path:
     """Write the rendered scene ``r`` (from :func:`render_built`) into ``out_dir`` atomically (a temporary
-    sibling folder renamed into place; a previous scene folder there is replaced)."""
+    sibling folder renamed into place; a previous scene folder there is replaced). ``frame0``: every Gaussian
+    at frame 0 (the observed, settled state); ``particles``: the ground truth's (for inspection only)."""
     import cv2
 
     out_dir = Path(out_dir)
@@ -218,9 +223,10 @@ def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int) -> Path
         far = float(valid_d.max() * 1.1) if valid_d.size else 1.0
         pose = np.concatenate([np.eye(3, 4), np.array([[H], [W], [focal]])], 1).reshape(-1)
         np.save(tmp / "poses_bounds.npy", np.tile(np.concatenate([pose, [near, far]])[None], (T, 1)))
-        write_ply(b.gaussians, tmp / "gaussians_t0.ply")
-        np.savez(tmp / "particles_t0.npz", x=b.particles.astype(np.float64), object_id=b.particle_ids,
-                 vol=b.particle_vol, anchored=b.anchored)
+        write_ply(frame0, tmp / "gaussians_t0.ply")
+        p = particles.particles
+        np.savez(tmp / "particles_ground_truth.npz", x=p.x.double().numpy(), object_id=p.object_ids.numpy(),
+                 vol=p.volume.double().numpy(), pinned=particles.pinned)
         d = _scene_spec(b, seed).to_json()
         d.update({k: v for k, v in b.extra.items() if k not in d})
         write_json_atomic(tmp / "scene.json", d)
@@ -251,9 +257,12 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         b = build_procedural(scene_name, seed=seed, frames=frames, scale=1.0 if scale is None else scale)
     if progress is not None:
         progress("simulate", 0, 1)
-    tx, tcov = simulate_built(b)
+    tx, tcov, particles = simulate_built(b)
     if progress is not None:
         progress("simulate", 1, 1)
     cb_r = (lambda t: progress("render", t + 1, b.frames)) if progress else None
     r = render_built(b, tx, tcov, progress=cb_r)
-    return write_scene_folder(b, r, Path(out_dir), seed)
+    means0, cov0 = _frame_state(b, tx, tcov, b.gaussians.covariances().float(), 0)
+    log_scales, quats = covariance_to_scale_rot(cov0)
+    frame0 = b.gaussians.with_(means=means0, log_scales=log_scales, quats=quats)
+    return write_scene_folder(b, r, Path(out_dir), seed, frame0, particles)

@@ -1,0 +1,184 @@
+"""What the video determines: a 90% interval for every identified parameter, and whether it is identifiable.
+
+A loss that barely changes when a parameter moves says the video does not determine that parameter
+(DESIGN.md section 10: displacement-driven tools fix nu and the ratios of E, not E itself, unless weight,
+inertia or a force gives a scale). The noise of the loss is measured on the loss itself, frame by frame:
+for a trial value theta of one parameter (the others at the optimum theta*), the per-frame differences
+d_t = l_t(theta) - l_t(theta*) give
+
+    Delta L = sum_t d_t,    SE = sqrt(n) std(d_t),    z = Delta L / SE   (n compared frames),
+
+a paired comparison of the two simulations over the frames. theta is excluded when z > Z; the interval is
+the connected set of values around theta* that are not excluded, its ends interpolated where z crosses Z.
+Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop at the first
+excluded value or the search box. A parameter is identifiable when its interval is bounded on both sides
+within the slice; one whose first gradient was zero is not, whatever its slice. Z = 1.645 (a one-sided 90%
+level) is checked on the benchmark suite: ``endogsim bench suite`` reports how often the true value falls
+in the interval (coverage).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from endogsim.materials.field import MaterialParams
+
+__all__ = ["Z_90", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "interval_from_slice", "parameter_intervals"]
+
+#: One-sided 90% normal quantile: a trial value with z above it is excluded.
+Z_90 = 1.645
+#: Slice steps away from the optimum: log10 E (decades) and nu.
+E_STEPS = (0.1, 0.3, 1.0)
+NU_STEPS = (0.02, 0.06)
+
+
+@dataclass
+class ParameterInterval:
+    """The evidence on one parameter of one object.
+
+    Attributes:
+        object_id, name: the object.
+        parameter: "E" (Pa) or "nu".
+        best: the identified value.
+        interval: [lo, hi] 90% interval (Pa for E), clipped to the search box.
+        search_box: [lo, hi] the values identification could reach.
+        identifiable: bounded on both sides within the slice (and a non-zero first gradient).
+        reason: one line saying why (or why not).
+        slice: [[value, Delta L, SE, z], ...] the trial values and their comparison with the optimum.
+        first_gradient: the loss gradient with respect to this parameter at the first iteration (None when
+            no iteration ran).
+    """
+
+    object_id: int
+    name: str
+    parameter: str
+    best: float
+    interval: list[float]
+    search_box: list[float]
+    identifiable: bool
+    reason: str
+    slice: list[list[float]] = field(default_factory=list)
+    first_gradient: float | None = None
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def paired_z(per_frame: dict[int, float], reference: dict[int, float]) -> tuple[float, float, float]:
+    """(Delta L, SE, z) of a trial's per-frame loss against the optimum's (frames both have)."""
+    frames = sorted(set(per_frame) & set(reference))
+    d = np.array([per_frame[t] - reference[t] for t in frames], dtype=np.float64)
+    n = len(d)
+    delta = float(d.sum())
+    se = float(math.sqrt(n) * d.std(ddof=1)) if n > 1 else abs(delta)
+    return delta, se, delta / max(se, 1e-12 * max(abs(delta), 1e-30))
+
+
+def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, float]]], box: tuple[float, float],
+                        threshold: float = Z_90) -> tuple[list[float], bool, bool]:
+    """The interval around ``best`` from trial points on each side.
+
+    Args:
+        best: the optimum (in the slice's coordinate, e.g. log10 E).
+        side_points: {-1: [(value, z), ...] going down, +1: [...] going up}, in order away from ``best``.
+        box: the search box in the same coordinate.
+        threshold: z above which a value is excluded.
+    Returns:
+        ([lo, hi], bounded below, bounded above).
+    """
+    ends, bounded = {}, {}
+    for side, pts in side_points.items():
+        last_v, last_z = best, 0.0
+        ends[side], bounded[side] = (box[0] if side < 0 else box[1]), False
+        for v, z in pts:
+            if z > threshold:
+                w = (threshold - last_z) / (z - last_z) if z != last_z else 1.0
+                ends[side], bounded[side] = last_v + w * (v - last_v), True
+                break
+            last_v, last_z = v, z
+    return [ends[-1], ends[1]], bounded[-1], bounded[1]
+
+
+def parameter_intervals(
+    params: MaterialParams,
+    object_names: dict[int, str],
+    evaluate: Callable[[MaterialParams], dict[int, float]],
+    box_log10_E: Callable[[MaterialParams], tuple[list[float], list[float]]],
+    optimise_nu: bool,
+    first_gradients: dict[str, list[float]] | None = None,
+    threshold: float = Z_90,
+) -> list[ParameterInterval]:
+    """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
+
+    Args:
+        params: the optimum (not modified; trial copies are evaluated).
+        object_names: {object id: name}.
+        evaluate: trial parameters -> the per-frame loss {frame: value} (a simulation and its render).
+        box_log10_E: parameters -> ([lower], [upper]) log10 E bounds per slot (upper depends on nu).
+        optimise_nu: whether nu was identified (else only E gets an interval).
+        first_gradients: {"log10_E": [...], "nu_raw": [...]} per slot at the first iteration.
+    """
+    reference = evaluate(params)
+    out = []
+    for slot in range(params.log10_E.shape[0]):
+        oids = [o for o in params.object_ids if params.slot(o) == slot]
+        name = ", ".join(object_names.get(o, str(o)) for o in oids)
+        lo_box, hi_box = (b[slot] for b in box_log10_E(params))
+        specs = [("E", E_STEPS, (lo_box, hi_box), float(params.log10_E.detach()[slot]))]
+        if optimise_nu:
+            nlo, nhi = params.nu_bounds
+            specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
+        for what, steps, box, best in specs:
+            sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
+            records = []
+            for side in (-1, 1):
+                for step in steps:
+                    v = min(max(best + side * step, box[0]), box[1])
+                    if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
+                        break  # the box ends here
+                    trial = _with_value(params, slot, what, v)
+                    delta, se, z = paired_z(evaluate(trial), reference)
+                    sides[side].append((v, z))
+                    records.append([v, delta, se, z])
+                    if z > threshold:
+                        break
+            (lo, hi), b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
+            g0 = None
+            if first_gradients is not None:
+                g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
+            if g0 is not None and g0 == 0.0:
+                ok, reason = False, "the loss gradient was exactly zero: the video does not constrain it"
+            elif b_lo and b_hi:
+                ok, reason = True, f"the loss rises above its frame-to-frame noise (z > {threshold}) on both sides"
+            elif not (b_lo or b_hi):
+                span = f"+-{steps[-1]}{' decades' if what == 'E' else ''}"
+                ok, reason = False, (f"the loss changes by less than its frame-to-frame noise over {span} "
+                                     "(clipped to the search box)")
+            else:
+                ok, reason = False, f"bounded {'below' if b_lo else 'above'} only: the loss is flat on the other side"
+            to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+            out.append(ParameterInterval(
+                object_id=oids[0], name=name, parameter=what, best=to_value(best),
+                interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
+                identifiable=ok, reason=reason,
+                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0))
+    return out
+
+
+def _with_value(params: MaterialParams, slot: int, what: str, value: float) -> MaterialParams:
+    """A detached copy of ``params`` with slot ``slot``'s log10 E (what "E") or nu set to ``value``."""
+    from endogsim.materials.field import nu_to_raw
+
+    log10_E = params.log10_E.detach().clone()
+    nu_raw = params.nu_raw.detach().clone()
+    with torch.no_grad():
+        if what == "E":
+            log10_E[slot] = value
+        else:
+            nu_raw[slot] = nu_to_raw(value, *params.nu_bounds)
+    return MaterialParams(log10_E, nu_raw, list(params.object_ids), params.nu_bounds, params.global_material)

@@ -1,0 +1,173 @@
+"""A solid behind a surface seen from one side: the volume an endoscope's view of tissue stands for.
+
+A video shows the tissue's front surface only. :func:`fill_behind_surface` turns samples of that surface
+(Gaussian centres of a reconstruction, or a procedural surface) into material points filling the slab
+between the surface and ``thickness`` behind it along the viewing rays, on a regular lattice (PhysGaussian's
+interior filling, for a one-sided view):
+
+1. the surface samples are binned on a grid in the image plane (u = x / z, v = y / z in the camera frame)
+   and each cell keeps the nearest sample's range (distance from the camera): the front surface;
+   small holes in the footprint are closed and filled from the nearest cell, spikes removed by a 3x3 median;
+2. every point of a lattice of spacing ``spacing`` (offset ``origin``, e.g. at the quarter points of the
+   simulation grid's cells for two particles per cell per axis) whose ray hits the footprint is kept when
+   its range lies within [front, front + thickness): the slab, filled evenly;
+3. each kept point carries its depth behind the surface and its distance to the footprint's outline in the
+   image-parallel plane; the :class:`SurfaceMap` locates any point the same way, so boundary conditions can
+   be set on grid nodes by geometry (behind the back face; within a band of the outline), independent of
+   how finely the particles sample the slab.
+
+Units: metres; world coordinates; the camera gives the rays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from endogsim.errors import SimulationError
+from endogsim.gaussians.camera import Camera
+
+__all__ = ["FilledSolid", "SurfaceMap", "surface_map", "fill_behind_surface"]
+
+
+@dataclass
+class FilledSolid:
+    """Material points filling a slab behind a surface.
+
+    Attributes:
+        x: [P, 3] positions (metres, world), on the lattice.
+        depth_behind: [P] range behind the front surface along the viewing ray (metres, in [0, thickness)).
+        edge_distance: [P] distance to the outline of the surface's footprint, measured in the
+            image-parallel plane at the point's depth (metres).
+        spacing: lattice spacing (metres); each point stands for spacing^3 of material.
+    """
+
+    x: np.ndarray
+    depth_behind: np.ndarray
+    edge_distance: np.ndarray
+    spacing: float
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def _to_camera(points: np.ndarray, camera: Camera) -> np.ndarray:
+    V = camera.viewmat.detach().double().cpu().numpy()
+    return points @ V[:3, :3].T + V[:3, 3]
+
+
+@dataclass
+class SurfaceMap:
+    """A surface seen from one side, as a map over the image plane of its range from the camera.
+
+    Attributes:
+        camera: the camera (its viewmat maps world to camera coordinates).
+        lo: [2] image-plane coordinates (u = x / z, v = y / z) of cell (0, 0)'s corner.
+        du: cell size in the image plane (radians, about).
+        front: [Nu, Nv] range (metres) of the surface per cell; inf outside the footprint.
+        edge: [Nu, Nv] distance to the footprint's outline (cells).
+    """
+
+    camera: Camera
+    lo: np.ndarray
+    du: float
+    front: np.ndarray
+    edge: np.ndarray
+
+    def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Depth behind the surface along the viewing ray [N] (metres; inf off the footprint) and distance to
+        the footprint's outline in the image-parallel plane [N] (metres; 0 off it) of world points [N, 3]."""
+        pc = _to_camera(np.asarray(points, np.float64), self.camera)
+        z = pc[:, 2]
+        ok = z > 1e-6
+        cij = np.floor((pc[:, :2] / np.where(ok, z, 1.0)[:, None] - self.lo) / self.du).astype(np.int64)
+        ok &= (cij >= 0).all(1) & (cij[:, 0] < self.front.shape[0]) & (cij[:, 1] < self.front.shape[1])
+        i, j = np.where(ok, cij[:, 0], 0), np.where(ok, cij[:, 1], 0)
+        depth = np.where(ok, np.linalg.norm(pc, axis=1) - self.front[i, j], np.inf)
+        edge = np.where(ok & np.isfinite(depth), self.edge[i, j] * self.du * np.abs(z), 0.0)
+        return depth, edge
+
+
+def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2) -> SurfaceMap:
+    """The :class:`SurfaceMap` of surface samples ``points`` [N, 3] (metres, world), on image-plane cells a
+    little finer than ``spacing`` at the surface's depth; holes up to about ``closing_cells`` are closed."""
+    from scipy import ndimage
+
+    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise SimulationError(f"a surface needs at least 3 samples [N, 3], got shape {pts.shape}")
+    pc = _to_camera(pts, camera)
+    if (pc[:, 2] <= 1e-6).any():
+        raise SimulationError("surface points behind the camera cannot be seen along viewing rays")
+    uv = pc[:, :2] / pc[:, 2:3]
+    rng = np.linalg.norm(pc, axis=1)
+    du = 0.7 * spacing / float(np.median(pc[:, 2]))
+    lo = uv.min(0) - 2 * du
+    shape = tuple((np.ceil((uv.max(0) + 2 * du - lo) / du)).astype(int) + 1)
+    ij = np.floor((uv - lo) / du).astype(int)
+    front = np.full(shape, np.inf)
+    np.minimum.at(front, (ij[:, 0], ij[:, 1]), rng)
+    seen = np.isfinite(front)
+    footprint = ndimage.binary_closing(seen, iterations=closing_cells) | seen
+    footprint = ndimage.binary_fill_holes(footprint)
+    # Cells of the footprint without a sample take the nearest sampled cell's range; a 3x3 median removes spikes.
+    _, (ni, nj) = ndimage.distance_transform_edt(~seen, return_indices=True)
+    front = np.where(footprint, front[ni, nj], 0.0)
+    front = np.where(footprint, ndimage.median_filter(front, size=3), np.inf)
+    front = np.where(front <= 0, np.inf, front)
+    edge = ndimage.distance_transform_edt(np.pad(np.isfinite(front), 1))[1:-1, 1:-1]
+    return SurfaceMap(camera, lo, du, front, edge)
+
+
+def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thickness: float, spacing: float,
+                        origin: np.ndarray | None = None, closing_cells: int = 2) -> tuple[FilledSolid, SurfaceMap]:
+    """Fill the slab of ``thickness`` behind the surface sampled by ``points`` with a lattice of ``spacing``.
+
+    Args:
+        points: [N, 3] samples of the visible surface (metres, world), e.g. Gaussian centres of one object.
+        camera: the camera the surface is seen from (its viewmat and the rays through its centre).
+        thickness: slab thickness along the viewing rays (metres, > 0): the material occupies depths
+            [0, thickness) behind the surface.
+        spacing: lattice spacing (metres).
+        origin: [3] a lattice point (metres, world); default: the lattice through (spacing / 2, ...), i.e.
+            cell-centred on a grid of spacing through the world origin.
+        closing_cells: holes in the footprint up to about this many image-plane cells are closed.
+    Returns:
+        the :class:`FilledSolid` and the :class:`SurfaceMap` it was filled behind.
+    """
+    if not (thickness > 0 and spacing > 0):
+        raise SimulationError(f"thickness {thickness} m and spacing {spacing} m must be > 0")
+    smap = surface_map(points, camera, spacing, closing_cells)
+    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
+    rng = np.linalg.norm(_to_camera(pts, camera), axis=1)
+    # Lattice points in the box the slab can occupy (camera frame -> world via the inverse viewmat).
+    V = camera.viewmat.detach().double().cpu().numpy()
+    Rinv, cam = V[:3, :3].T, -V[:3, :3].T @ V[:3, 3]
+    nu_, nv_ = smap.front.shape
+    lo, du = smap.lo, smap.du
+    hi = lo + du * np.array([nu_, nv_])
+    # The slab's bounding box: the footprint's corner rays, and its ray nearest the optical axis (the
+    # deepest point of a range lies on the most central ray), between the nearest and farthest range.
+    rays_uv = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]], np.clip(0.0, lo, hi)])
+    r_lo, r_hi = float(rng.min()) - spacing, float(rng.max()) + thickness + spacing
+    dirs = np.concatenate([rays_uv, np.ones((len(rays_uv), 1))], 1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ext = np.concatenate([dirs * r_lo, dirs * r_hi]) @ Rinv.T + cam
+    org = np.full(3, spacing / 2) if origin is None else np.asarray(origin, np.float64)
+    axes = [org[a] + spacing * np.arange(np.floor((ext[:, a].min() - org[a]) / spacing),
+                                         np.ceil((ext[:, a].max() - org[a]) / spacing) + 1) for a in range(3)]
+    out_x, out_d, out_e = [], [], []
+    # One slab of lattice planes at a time keeps the memory bounded whatever the resolution.
+    for x0 in axes[0]:
+        g = np.stack(np.meshgrid([x0], axes[1], axes[2], indexing="ij"), -1).reshape(-1, 3)
+        depth, edge = smap.locate(g)
+        keep = (depth >= 0) & (depth < thickness)
+        if keep.any():
+            out_x.append(g[keep])
+            out_d.append(depth[keep])
+            out_e.append(edge[keep])
+    if not out_x:
+        raise SimulationError("no lattice point falls inside the slab behind the surface (spacing too coarse?)")
+    return FilledSolid(np.concatenate(out_x), np.concatenate(out_d), np.concatenate(out_e), float(spacing)), smap

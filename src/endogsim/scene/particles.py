@@ -1,0 +1,171 @@
+"""The simulated material of a scene: particles filling each deformable object, and their boundary conditions.
+
+Built the same way from any sampling of the objects' visible surfaces: the Gaussians of frame 0 (a real
+video's reconstruction, and identification on a benchmark scene, which never sees its ground truth's
+particles) or a procedural scene's true surface (the benchmark's ground truth, at a finer spacing):
+
+1. each object's slab of ``scenario.thickness(name)`` behind its surface is filled with a lattice of the
+   discretisation's particle spacing, aligned with the simulation grid (two particles per cell and axis at
+   half-cell spacing: :func:`endogsim.physics.filling.fill_behind_surface`);
+2. its boundary conditions (``scenario.boundary(name)``) are set by geometry on the grid nodes (the space
+   behind the back face is a fixed wall or a frictionless support, outside an optional release disc; a band
+   along the outline holds still), and on the particles they contain (pinned: the band along the outline,
+   and the deepest layer of a "fixed" back face).
+
+Units: metres, world coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from endogsim.errors import DataError
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
+from endogsim.physics import Anchor, ExternalForce, Particles
+from endogsim.physics.filling import SurfaceMap, fill_behind_surface
+from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings
+
+__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "scenario_forces"]
+
+
+@dataclass
+class SlabConditions:
+    """The boundary conditions of one object's slab, as geometry: its surface map locates any world point
+    (depth behind the surface, distance to the outline), so grid nodes get their conditions by position.
+
+    Attributes:
+        surface: the object's :class:`~endogsim.physics.filling.SurfaceMap`.
+        thickness: slab thickness (metres).
+        boundary: the scene's description of its conditions.
+    """
+
+    surface: SurfaceMap
+    thickness: float
+    boundary: ObjectBoundary
+
+    def released(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: world points over the release disc, where the back face is free."""
+        if self.boundary.release is None:
+            return np.zeros(len(points), bool)
+        (cx, cy), r = self.boundary.release
+        return np.hypot(points[:, 0] - cx, points[:, 1] - cy) <= r
+
+    def behind(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: world points behind the slab's back face (inside its footprint, off the release disc)."""
+        depth, _ = self.surface.locate(points)
+        return np.isfinite(depth) & (depth >= self.thickness) & ~self.released(points)
+
+    def border(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: world points of the slab within ``boundary.border`` of the outline."""
+        depth, edge = self.surface.locate(points)
+        return np.isfinite(depth) & (depth >= 0) & (depth < self.thickness) & (edge < self.boundary.border)
+
+    def towards_camera(self, points: np.ndarray) -> np.ndarray:
+        """[N, 3] unit vectors from world points towards the camera (the support's normal: out of it)."""
+        d = self.surface.camera.center().double().numpy()[None] - points
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def anchors(self) -> list[Anchor]:
+        out = []
+        if self.boundary.back_face == "fixed":
+            out.append(Anchor(kind="sticky", region=self.behind))
+        elif self.boundary.back_face == "support":
+            out.append(Anchor(kind="support", region=self.behind, normal=self.towards_camera))
+        if self.boundary.border > 0:
+            out.append(Anchor(kind="sticky", region=self.border))
+        return out
+
+
+@dataclass
+class SceneParticles:
+    """Particles of the deformable objects and their boundary conditions.
+
+    Attributes:
+        particles: the particles (positions, volumes spacing^3, object ids).
+        pinned: [P] bool, held at their rest position (back face "fixed", border band).
+        slabs: {object id: its :class:`SlabConditions`}.
+    """
+
+    particles: Particles
+    pinned: np.ndarray
+    slabs: dict[int, SlabConditions]
+
+    def anchors(self) -> list[Anchor]:
+        """The :class:`~endogsim.physics.Anchor` list of these boundary conditions: pinned particles, and
+        every slab's node conditions (behind its back face; along its outline)."""
+        out = [Anchor(kind="fixed", particle_mask=torch.as_tensor(self.pinned))] if self.pinned.any() else []
+        for slab in self.slabs.values():
+            out += slab.anchors()
+        return out
+
+
+def gaussian_surfaces(g: Gaussians, object_ids: list[int], min_opacity: float = 0.05) -> dict[int, np.ndarray]:
+    """{object id: [N, 3] centres (metres) of its Gaussians at least ``min_opacity`` opaque}: the visible
+    surfaces a reconstruction gives."""
+    ids = g.object_ids.cpu().numpy()
+    keep = g.opacities.detach().cpu().numpy() >= min_opacity
+    means = g.means.detach().cpu().double().numpy()
+    return {oid: means[(ids == oid) & keep] for oid in object_ids}
+
+
+def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Camera,
+                    settings: SimSettings) -> SceneParticles:
+    """Fill every deformable object of ``surfaces`` and apply its boundary conditions.
+
+    Args:
+        surfaces: {object id: [N, 3] samples of its visible surface (metres, world)}.
+        spec: the scene (objects' names, the scenario's thicknesses and boundary conditions, the sim box).
+        camera: the camera the surfaces are seen from.
+        settings: the discretisation (its particle spacing and grid set the lattice).
+    """
+    sc: ScenarioSpec = spec.scenario
+    spacing = sc.spacing(settings)
+    # Lattice points at the particle spacing through box_lo + spacing / 2: with spacing = dx / 2 these are
+    # the quarter points of every grid cell, the usual two particles per cell and axis.
+    origin = np.asarray(sc.box_lo, float) + spacing / 2
+    parts, pinned, slabs = [], [], {}
+    for oid, pts in surfaces.items():
+        name = spec.object(oid).name
+        thickness = sc.thickness(name)
+        if thickness <= 0:
+            raise DataError(f"scene {spec.name!r}: object {name!r} has no thickness behind its surface "
+                            "(scenario.extrusion.thickness)")
+        if len(pts) < 3:
+            raise DataError(f"scene {spec.name!r}: object {name!r} has {len(pts)} surface samples to fill")
+        solid, smap = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
+        slab = SlabConditions(smap, thickness, sc.boundary(name))
+        pin = slab.border(solid.x)
+        if slab.boundary.back_face == "fixed":  # the deepest lattice layer is glued to the anatomy behind
+            pin |= (solid.depth_behind >= thickness - spacing) & ~slab.released(solid.x)
+        P = len(solid)
+        parts.append(Particles(torch.as_tensor(solid.x, dtype=torch.float32),
+                               torch.full((P,), spacing ** 3, dtype=torch.float32),
+                               torch.full((P,), int(oid), dtype=torch.int64)))
+        pinned.append(pin)
+        slabs[int(oid)] = slab
+    if not parts:
+        raise DataError(f"scene {spec.name!r}: no deformable object to fill with particles")
+    return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs)
+
+
+def scenario_forces(spec: SceneSpec, particles: Particles) -> list[ExternalForce]:
+    """The :class:`~endogsim.physics.ExternalForce` list of ``spec.scenario.forces`` over these particles
+    (regions are geometric, so the ground truth's particles and identification's get the same drive)."""
+    out = []
+    x = particles.x.double().numpy()
+    ids = particles.object_ids.numpy()
+    for f in spec.scenario.forces:
+        if f.get("type") != "impulse":
+            raise DataError(f"scene {spec.name!r}: unknown force type {f.get('type')!r} (expected 'impulse')")
+        oid = spec.object(f["object"]).id
+        mask = (ids == oid) & (np.linalg.norm(x - np.asarray(f["center"], float), axis=1) <= float(f["radius"]))
+        if not mask.any():
+            raise DataError(f"scene {spec.name!r}: the impulse on {f['object']!r} reaches no particle "
+                            f"within {f['radius']} m of {f['center']}")
+        out.append(ExternalForce(acceleration=tuple(float(v) for v in f["velocity"]), particle_mask=torch.as_tensor(mask),
+                                 t_start=float(f.get("t_start", 0.0)), impulse=True))
+    return out
