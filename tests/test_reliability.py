@@ -1,0 +1,175 @@
+"""Issue 22: nothing silently wrong, one run per folder, every error names its cause.
+
+One test (or a few) per case of the issue, on small inputs: the ``tiny`` scene with 4 frames, hand-made
+data folders, a fake MLLM endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from endogsim.errors import DataError, DataWarning, MaterialError
+from endogsim.io.atomic import finite_json, write_json_atomic
+from endogsim.io.runfolder import run_folder
+
+FRAMES = 4
+
+
+def strict_json(path: Path):
+    """``path`` parsed as standard JSON (NaN, Infinity refused)."""
+    def refuse(name):
+        raise ValueError(f"{path}: {name} is not JSON")
+
+    return json.loads(Path(path).read_text(), parse_constant=refuse)
+
+
+def cli(*args: str):
+    from endogsim.cli.main import app
+
+    return CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": "200"})
+
+
+def one_line_error(result, needle: str) -> str:
+    """The CLI failed with exit code 2 and one ``error:`` line holding ``needle``; returns that line."""
+    lines = [ln for ln in result.output.splitlines() if ln.startswith("error:")]
+    assert result.exit_code == 2 and len(lines) == 1 and needle in lines[0], result.output
+    assert "Traceback" not in result.output
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The ``tiny`` scene with 4 frames (shared with the other test modules that use it)."""
+    from endogsim.synth import synthesize
+
+    folder = tmp_path_factory.getbasetemp() / "shared_tiny_f4"
+    if not (folder / "scene.json").is_file():
+        synthesize("tiny", folder, seed=0, frames=FRAMES)
+    return folder
+
+
+def scene_copy(src: Path, dst: Path, edit=None) -> Path:
+    """A copy of the scene folder ``src`` whose scene.json dict went through ``edit``."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    if edit is not None:
+        d = json.loads((dst / "scene.json").read_text())
+        edit(d)
+        (dst / "scene.json").write_text(json.dumps(d))
+    return dst
+
+
+# ------------------------------------------------------------------------------------------------------ JSON, folders
+def test_json_files_never_hold_nan_or_infinity(tmp_path):
+    p = write_json_atomic(tmp_path / "m.json", {"epe": math.nan, "psnr": 30.0, "grad": [1.0, -math.inf],
+                                                "stages": {"identify": {"epe": math.inf}}})
+    d = strict_json(p)
+    assert d["epe"] is None and d["grad"] == [1.0, None] and d["stages"]["identify"]["epe"] is None
+    assert d["non_finite"] == {"epe": "nan", "grad[1]": "-inf"} and d["stages"]["identify"]["non_finite"] == {"epe": "inf"}
+    # read back and written again (run.json is), the note stays while the value is null
+    assert finite_json(d)["non_finite"] == d["non_finite"]
+    assert "non_finite" not in finite_json({**d, "epe": 1.0, "grad": [1.0, 2.0]})
+
+
+HOLD_LOCK = textwrap.dedent("""
+    import sys, time
+    from endogsim.io.runfolder import run_folder
+    with run_folder(sys.argv[1], "identify"):
+        print("locked", flush=True)
+        time.sleep(60)
+""")
+
+
+def hold_lock(folder: Path) -> subprocess.Popen:
+    """A process that holds the lock of ``folder`` (as `identify` would) until killed."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    p = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(folder)], stdout=subprocess.PIPE, text=True, env=env)
+    assert p.stdout.readline().strip() == "locked"
+    return p
+
+
+def test_a_second_command_on_a_run_folder_is_refused_with_the_holders_pid(tiny, tmp_path):
+    out = tmp_path / "run"
+    holder = hold_lock(out)
+    try:
+        with pytest.raises(DataError, match=f"in use by PID {holder.pid} \\(endogsim identify"):
+            with run_folder(out, "identify"):
+                pass
+        one_line_error(cli("identify", tiny, "--out", out, "--iters", 0, "--no-video"), f"in use by PID {holder.pid}")
+        one_line_error(cli("simulate", tiny, "-i", "poke", "--out", out), f"in use by PID {holder.pid}")
+    finally:
+        holder.kill()  # SIGKILL: the OS releases the lock; no stale lock blocks the next command
+        holder.wait()
+    with run_folder(out, "identify"):
+        with run_folder(out, "identify"):  # re-entrant within one process
+            pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # the lock file is gone
+
+
+def test_run_folder_removes_the_folders_it_created_when_the_command_fails(tmp_path):
+    with pytest.raises(RuntimeError):
+        with run_folder(tmp_path / "a" / "b" / "out", "synth"):
+            raise RuntimeError("failed")
+    assert list(tmp_path.iterdir()) == []
+    keep = tmp_path / "keep"
+    with pytest.raises(RuntimeError):
+        with run_folder(keep, "reconstruct"):
+            (keep / "checkpoint.pt").write_bytes(b"state")  # what a failed run wrote stays (to resume)
+            raise RuntimeError("failed")
+    assert (keep / "checkpoint.pt").is_file()
+
+
+def test_run_folder_refuses_a_file_and_an_unwritable_folder(tmp_path, monkeypatch):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(DataError, match="is a file"):
+        with run_folder(f, "identify"):
+            pass
+    import tempfile
+
+    def read_only(*a, **k):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    with pytest.raises(DataError, match="ro: cannot write here \\(Permission denied\\)"):
+        with run_folder(tmp_path / "ro", "identify"):
+            pass
+    assert not (tmp_path / "ro").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder_is_one_line(tiny, tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        one_line_error(cli("simulate", tiny, "-i", "poke", "--out", ro / "sim"), "Permission denied")
+        one_line_error(cli("materials", "init", tiny, "--out", ro / "m.json"), "Permission denied")
+    finally:
+        ro.chmod(0o700)
+
+
+def test_cli_turns_os_errors_naming_a_file_into_one_line(tmp_path):
+    import typer
+
+    from endogsim.cli.common import user_errors
+
+    @user_errors
+    def fails():
+        raise PermissionError(13, "Permission denied", str(tmp_path / "x.json"))
+
+    with pytest.raises(typer.Exit) as e:
+        fails()
+    assert e.value.exit_code == 2
