@@ -173,3 +173,73 @@ def test_cli_turns_os_errors_naming_a_file_into_one_line(tmp_path):
     with pytest.raises(typer.Exit) as e:
         fails()
     assert e.value.exit_code == 2
+
+
+# ------------------------------------------------------------------------------------------------------ reconstruct
+RECON = {"iters": 2, "resolution_scale": 0.25, "eval_every": 0, "checkpoint_every": 1000}
+
+
+@pytest.fixture(scope="module")
+def other(tmp_path_factory):
+    """Another 4-frame scene (seed 1): dataset B."""
+    from endogsim.synth import synthesize
+
+    return synthesize("tiny", tmp_path_factory.mktemp("other") / "B", seed=1, frames=FRAMES)
+
+
+def test_reconstruct_refuses_the_run_folder_of_another_dataset(tiny, other, tmp_path):
+    from endogsim.recon.config import ReconConfig
+    from endogsim.recon.train import reconstruct
+
+    cfg = ReconConfig(**RECON)
+    reconstruct(tiny, tmp_path / "run", cfg)
+    made = strict_json(tmp_path / "run" / "provenance.json")
+    assert made["data"] == str(Path(tiny).resolve()) and made["frames"] == FRAMES and made["resolution"] == [40, 32]
+    assert len(made["frames_sha256"]) == 64 and made["config"]["iters"] == 2
+    with pytest.raises(DataError, match="was made from .*gives other frames.*--fresh"):
+        reconstruct(other, tmp_path / "run", cfg)
+    with pytest.raises(DataError, match="other frames"):  # other frames of the same data: another resolution
+        reconstruct(tiny, tmp_path / "run", ReconConfig(**{**RECON, "resolution_scale": 0.5}))
+    one_line_error(cli("reconstruct", other, "--out", tmp_path / "run", "--iters", 2, "--resolution-scale", 0.25),
+                   "gives other frames")
+    reconstruct(other, tmp_path / "run", cfg, resume=False)  # --fresh
+    assert strict_json(tmp_path / "run" / "provenance.json")["data"] == str(Path(other).resolve())
+
+
+@pytest.mark.parametrize("damage", ["truncate", "empty"])
+def test_corrupt_reconstruction_checkpoint_is_one_line_offering_fresh(tiny, tmp_path, damage):
+    from endogsim.recon.config import ReconConfig
+    from endogsim.recon.train import reconstruct
+
+    reconstruct(tiny, tmp_path / "run", ReconConfig(**RECON))
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2] if damage == "truncate" else b"")
+    with pytest.raises(DataError, match="checkpoint.pt: corrupt checkpoint .*--fresh"):
+        reconstruct(tiny, tmp_path / "run", ReconConfig(**RECON))
+    r = cli("reconstruct", tiny, "--out", tmp_path / "run", "--iters", 2, "--resolution-scale", 0.25)
+    one_line_error(r, "corrupt checkpoint")
+
+
+def cholec_clip(folder: Path, size: tuple[int, int], n: int = 6) -> Path:
+    """A CholecSeg8K-style clip of ``n`` random frames of ``size`` = (W, H) px (liver and a grasper)."""
+    import cv2
+
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        cv2.imwrite(str(folder / f"frame_{i}_endo.png"), rng.integers(0, 255, (size[1], size[0], 3), np.uint8))
+        ids = np.full((size[1], size[0], 3), 21, np.uint8)
+        ids[: size[1] // 3] = 31
+        cv2.imwrite(str(folder / f"frame_{i}_endo_watershed_mask.png"), ids)
+    return folder
+
+
+def test_frames_too_small_for_reconstruction_are_refused(tmp_path):
+    from endogsim.recon.config import ReconConfig
+    from endogsim.recon.train import reconstruct
+
+    clip = cholec_clip(tmp_path / "clip", (24, 14))
+    with pytest.raises(DataError, match="the frames are 24x14 px at resolution scale 1; .*at least 32 px"):
+        reconstruct(clip, tmp_path / "run", ReconConfig(iters=2, resolution_scale=1.0))
+    assert not (tmp_path / "run").exists()
+    one_line_error(cli("reconstruct", clip, "--out", tmp_path / "run", "--resolution-scale", 0.5), "at least 32 px")
