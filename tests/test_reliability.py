@@ -243,3 +243,115 @@ def test_frames_too_small_for_reconstruction_are_refused(tmp_path):
         reconstruct(clip, tmp_path / "run", ReconConfig(iters=2, resolution_scale=1.0))
     assert not (tmp_path / "run").exists()
     one_line_error(cli("reconstruct", clip, "--out", tmp_path / "run", "--resolution-scale", 0.5), "at least 32 px")
+
+
+# ------------------------------------------------------------------------------------------------------ scene.json
+@pytest.mark.parametrize("key, value, needle", [
+    ("E", math.nan, "E = nan Pa must be finite"), ("E", -5.0, "E = -5.0 Pa must be finite and > 0"),
+    ("nu", 0.5, "nu = 0.5 must lie in \\(-1, 0.5\\)"), ("E", "soft", "E = 'soft'; it must be a number"),
+    ("density", None, "gives E, nu but not all of E, nu and density"),
+])
+def test_impossible_ground_truth_is_refused_on_load(tiny, tmp_path, key, value, needle):
+    from endogsim.scene.schema import load_scene_spec
+
+    def edit(d):
+        d["objects"][0][key] = value
+
+    bad = scene_copy(tiny, tmp_path / "bad", edit)
+    with pytest.raises((DataError, MaterialError), match=needle):
+        load_scene_spec(bad)
+    one_line_error(cli("identify", bad, "--out", tmp_path / "run", "--iters", 0, "--no-video"), "scene.json")
+    assert not (tmp_path / "run").exists()  # nothing written, no empty folder left
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda d: d.update(frames=1000), "frames = 1000, but its images end at frame 3 \\(images/frame-000004"),
+    (lambda d: d["files"].update(images="../B/images/frame-%06d.color.png"), "points outside the scene folder"),
+    (lambda d: d["files"].update(gaussians_t0="/etc/passwd"), "files.gaussians_t0 = '/etc/passwd' points outside"),
+])
+def test_scene_json_frames_and_files_are_checked(tiny, tmp_path, edit, needle):
+    from endogsim.scene.schema import load_scene_spec
+
+    bad = scene_copy(tiny, tmp_path / "bad", edit)
+    with pytest.raises(DataError, match=needle):
+        load_scene_spec(bad)
+
+
+# ------------------------------------------------------------------------------------------------------ identify
+def test_identify_never_writes_nan_and_refuses_corrupt_state(tiny, tmp_path):
+    from endogsim.identify import IdentifyConfig, run_identify
+
+    def no_flow(d):  # a scene without ground-truth flow: EPE is NaN
+        d["files"].pop("flow")
+        d["files"].pop("flow_valid")
+
+    scene = scene_copy(tiny, tmp_path / "scene", no_flow)
+    run = tmp_path / "run"
+    cfg = IdentifyConfig(iters=1, frame_stride=2)
+    m = run_identify(scene, run, config=cfg, video=False)
+    assert math.isnan(m["epe"])
+    written = strict_json(run / "metrics.json")
+    assert written["epe"] is None and written["non_finite"]["epe"] == "nan"
+
+    flow = run / "observed_flow.npz"
+    flow.write_bytes(flow.read_bytes()[:100])
+    with pytest.raises(DataError, match="observed_flow.npz: corrupt observed-flow cache .*--fresh"):
+        run_identify(scene, run, config=cfg, video=False)
+    ckpt = run / "checkpoint.pt"
+    ckpt.write_bytes(b"")
+    one_line_error(cli("identify", scene, "--out", run, "--iters", 1, "--frame-stride", 2, "--no-video"),
+                   "checkpoint.pt: corrupt checkpoint")
+    r = cli("identify", scene, "--out", run, "--iters", 1, "--frame-stride", 2, "--no-video", "--fresh")
+    assert r.exit_code == 0, r.output
+
+
+def test_identify_and_simulate_refuse_materials_for_objects_the_scene_lacks(tiny, tmp_path):
+    from endogsim.identify import run_identify
+    from endogsim.pipeline.simulate import simulate_interaction
+
+    d = json.loads(cli_materials(tiny, tmp_path / "m.json").read_text())
+    d["objects"].append({**d["objects"][0], "object_id": 7, "name": "spleen"})
+    (tmp_path / "m.json").write_text(json.dumps(d))
+    with pytest.raises(MaterialError, match="'spleen' \\(id 7\\), which scene 'tiny' .* does not have"):
+        run_identify(tiny, tmp_path / "run", init=str(tmp_path / "m.json"))
+    with pytest.raises(MaterialError, match="'spleen' \\(id 7\\)"):
+        simulate_interaction(tiny, "poke", tmp_path / "m.json", tmp_path / "sim")
+    assert not (tmp_path / "run").exists() and not (tmp_path / "sim").exists()
+    one_line_error(cli("simulate", tiny, "-i", "poke", "-m", tmp_path / "m.json", "--out", tmp_path / "sim"), "spleen")
+    assert not (tmp_path / "sim").exists()
+
+
+def cli_materials(data: Path, out: Path, *extra) -> Path:
+    """``endogsim materials init DATA --out OUT`` (prior backend unless ``extra`` says otherwise)."""
+    r = cli("materials", "init", data, "--out", out, *extra)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------ simulate
+def test_an_interaction_that_moves_the_tool_out_of_the_box_is_refused(tiny, tmp_path):
+    from endogsim.pipeline.simulate import simulate_interaction
+
+    far = {"name": "far", "frames": 6, "tool": {"at": [0.0, 0.0], "keyframes": [[0, 0, 0, 0], [1.0, 0, 0, 0.1]]}}
+    with pytest.raises(DataError, match="moves tool 'probe' \\(id 2\\) out of the simulation box .* at frame 3 its "
+                                        "tip is at z = .* not grown"):
+        simulate_interaction(tiny, far, "truth", tmp_path / "sim")
+    back = {**far, "tool": {"keyframes": [[0, 0, 0, 0], [1.0, 0, 0, -0.1]]}}
+    with pytest.raises(DataError, match="out of the simulation box"):
+        simulate_interaction(tiny, back, "truth", tmp_path / "sim")
+    assert not (tmp_path / "sim").exists()
+
+
+def test_simulate_frames_are_validated_like_the_files(tiny, tmp_path):
+    one_line_error(cli("simulate", tiny, "-i", "poke", "--frames", 0, "--out", tmp_path / "sim"),
+                   "--frames 0: invalid interaction (frames: Input should be greater than or equal to 2)")
+    one_line_error(cli("simulate", tiny, "-i", "poke", "--frames", 100000, "--out", tmp_path / "sim"), "less than or equal to 400")
+    assert not (tmp_path / "sim").exists()
+
+
+def test_a_force_without_an_end_round_trips_through_its_json(tmp_path):
+    from endogsim.pipeline.interaction import load_interaction
+
+    inter = load_interaction({"name": "hold", "force": {"at": [0, 0], "acceleration": [0, 0, 10]}})
+    p = write_json_atomic(tmp_path / "interaction.json", inter.model_dump(mode="json"))
+    assert strict_json(p)["force"]["t_end"] is None and load_interaction(p) == inter
