@@ -355,3 +355,22 @@ def test_a_force_without_an_end_round_trips_through_its_json(tmp_path):
     inter = load_interaction({"name": "hold", "force": {"at": [0, 0], "acceleration": [0, 0, 10]}})
     p = write_json_atomic(tmp_path / "interaction.json", inter.model_dump(mode="json"))
     assert strict_json(p)["force"]["t_end"] is None and load_interaction(p) == inter
+
+
+# ------------------------------------------------------------------------------------------------------ synth
+@pytest.mark.parametrize("args, needle", [
+    (["--frames", 1_000_000_000], "--frames 1000000000: a synthesized scene has 2 to 400 frames"),
+    (["--scale", 1000], "images of 160000x128000 px: the limit is 2048 px a side"),
+    (["--scale", 12, "--frames", 400], "400 frames of 1920x1536 px are 1180 M pixel-frames; the limit is 50 M"),
+])
+def test_synth_sizes_are_bounded_up_front(tmp_path, args, needle):
+    one_line_error(cli("synth", "tiny", "--out", tmp_path / "big", *args), needle)
+    assert not (tmp_path / "big").exists()
+
+
+def test_particle_count_is_bounded():
+    from endogsim.synth.suite import MAX_PARTICLES, check_size
+
+    check_size(24, 160, 128, 5000)
+    with pytest.raises(DataError, match=f"the limit is {MAX_PARTICLES}"):
+        check_size(particles=MAX_PARTICLES + 1)
