@@ -374,3 +374,114 @@ def test_particle_count_is_bounded():
     check_size(24, 160, 128, 5000)
     with pytest.raises(DataError, match=f"the limit is {MAX_PARTICLES}"):
         check_size(particles=MAX_PARTICLES + 1)
+
+
+# ------------------------------------------------------------------------------------------------------ materials
+def test_materials_init_reads_scene_folders_and_run_folders(tiny, tmp_path):
+    from endogsim.materials import MaterialField
+
+    f = MaterialField.load(cli_materials(tiny, tmp_path / "scene.json.materials"))
+    assert {r.object_id: (r.name, r.klass, r.rigid) for r in f.records} == {
+        1: ("tissue", "liver", False), 2: ("probe", "instrument", True)}
+    recon = tmp_path / "recon"  # a reconstruction run folder: objects.json and provenance.json
+    recon.mkdir()
+    (recon / "objects.json").write_text(json.dumps({"1": {"name": "tissue", "is_tool": False, "class": "liver"}}))
+    (recon / "provenance.json").write_text(json.dumps({"data": str(tiny)}))
+    assert MaterialField.load(cli_materials(recon, tmp_path / "r.json"))[1].klass == "liver"
+    one_line_error(cli("materials", "init", recon, "--backend", "mllm", "--out", tmp_path / "x.json"),
+                   f"the mllm/replay backends need a data folder (this run was made from {tiny})")
+    run = tmp_path / "run"  # an `endogsim run` folder: its scene
+    (run / "scene").mkdir(parents=True)
+    (run / "scene" / "scene.json").write_text((Path(tiny) / "scene.json").read_text())
+    assert MaterialField.load(cli_materials(run, tmp_path / "s.json"))[2].rigid
+
+
+class SilentOrHtmlServer:
+    """A local endpoint that answers every request with an HTML page (status 200), or after ``delay`` s."""
+
+    def __init__(self, delay: float = 0.0) -> None:
+        import threading
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        outer = self
+        self.requests = 0
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *a):
+                pass
+
+            def do_POST(self):
+                outer.requests += 1
+                self.rfile.read(int(self.headers["Content-Length"]))
+                time.sleep(delay)
+                page = b"<html><body>Welcome to nginx!</body></html>"
+                try:
+                    self.send_response(200)
+                    self.send_header("Content-Type", "text/html")
+                    self.send_header("Content-Length", str(len(page)))
+                    self.end_headers()
+                    self.wfile.write(page)
+                except (BrokenPipeError, ConnectionResetError):
+                    pass
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
+        threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True).start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def two_objects():
+    """A 32x32, two-frame scene with a liver (id 1) and a gallbladder (id 2)."""
+    from endogsim.io.scene import ObjectLabel, Scene
+
+    frames = np.random.default_rng(0).uniform(0.2, 0.8, (2, 32, 32, 3)).astype(np.float32)
+    masks = np.full((2, 32, 32), -1, np.int32)
+    masks[:, :16], masks[:, 16:] = 1, 2
+    labels = {1: ObjectLabel(1, "liver", False, "liver"), 2: ObjectLabel(2, "gallbladder", False, "gallbladder")}
+    return Scene(frames=frames, times=np.array([0.0, 0.04]), K=np.eye(3), object_masks=masks, labels=labels)
+
+
+def mllm_field(tmp_path, url: str, **cfg):
+    from endogsim.materials import MaterialInitConfig, MLLMConfig, MLLMFallbackWarning, initialise_materials
+
+    scene = two_objects()
+    mcfg = MLLMConfig(model="m", base_url=url, cache_dir=tmp_path / "cache", **cfg)
+    with pytest.warns(MLLMFallbackWarning):
+        return initialise_materials(scene.labels, MaterialInitConfig(backend="mllm", mllm=mcfg), scene)
+
+
+def test_mllm_unreachable_fails_fast_and_records_the_real_source(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    f = mllm_field(tmp_path, f"http://127.0.0.1:{port}/v1", max_retries=0)
+    assert f[1].source.startswith("prior (mllm fallback: APIConnectionError")
+    assert f[2].source.startswith("prior (mllm fallback: endpoint unreachable (APIConnectionError")
+    assert f.meta["backend"] == "mllm" and f.meta["sources"] == {"mllm": 0, "prior": 2}
+    assert "2 of 2 objects took the prior" in f.meta["note"]
+
+
+def test_silent_mllm_is_bounded_in_total_time(tmp_path):
+    server = SilentOrHtmlServer(delay=5.0)
+    try:
+        t0 = time.monotonic()
+        f = mllm_field(tmp_path, server.url, timeout_s=60.0, total_timeout_s=1.0, max_retries=2)
+        assert time.monotonic() - t0 < 4.0  # 1 s of budget (the default 60 s x 3 tries x 2 objects: 6 min)
+    finally:
+        server.close()
+    assert "Timeout" in f[1].source and "unreachable" in f[2].source
+
+
+def test_mllm_answering_html_falls_back_with_a_reason(tmp_path):
+    server = SilentOrHtmlServer()
+    try:
+        f = mllm_field(tmp_path, server.url, max_retries=0)
+    finally:
+        server.close()
+    assert "did not answer in the chat-completions format" in f[1].source and f[1].E == 5e3
