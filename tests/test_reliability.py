@@ -485,3 +485,68 @@ def test_mllm_answering_html_falls_back_with_a_reason(tmp_path):
     finally:
         server.close()
     assert "did not answer in the chat-completions format" in f[1].source and f[1].E == 5e3
+
+
+# ------------------------------------------------------------------------------------------------------ loaders
+def endonerf_copy(tiny: Path, dst: Path) -> Path:
+    """The tiny scene as a plain EndoNeRF folder (images, 16-bit depth, masks, poses_bounds.npy)."""
+    import shutil
+
+    for sub in ("images", "depth", "masks"):
+        shutil.copytree(tiny / sub, dst / sub)
+    shutil.copy(tiny / "poses_bounds.npy", dst / "poses_bounds.npy")
+    return dst
+
+
+def test_a_text_file_named_poses_bounds_is_named_as_such(tiny, tmp_path):
+    from endogsim.io import load_scene
+
+    d = endonerf_copy(tiny, tmp_path / "d")
+    (d / "poses_bounds.npy").write_text("focal 569\n")
+    with pytest.raises(DataError, match="poses_bounds.npy: not a NumPy .npy file \\(no NUMPY header"):
+        load_scene(d)
+
+
+def test_assumed_intrinsics_and_saturated_depth_are_warned_and_recorded(tiny, tmp_path):
+    import cv2
+
+    from endogsim.io import load_scene
+    from endogsim.recon.config import ReconConfig
+    from endogsim.recon.train import reconstruct
+
+    d = endonerf_copy(tiny, tmp_path / "d")
+    (d / "poses_bounds.npy").unlink()
+    depth = sorted((d / "depth").glob("*.png"))
+    for p in depth:
+        im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        im[:8] = 65535  # the top rows saturated
+        cv2.imwrite(str(p), im)
+    with pytest.warns(DataWarning) as caught:
+        s = load_scene(d)
+    assert any("no poses_bounds.npy: intrinsics assumed (a 75-degree" in str(w.message) for w in caught)
+    assert any("6.2% of the depth pixels in depth/ are saturated at 65535" in str(w.message) for w in caught)
+    assert (s.depth[:, :8] == 0).all() and len(s.notes) == 2
+    with pytest.warns(DataWarning):
+        reconstruct(d, tmp_path / "run", ReconConfig(**RECON))
+    assert strict_json(tmp_path / "run" / "metrics.json")["data_notes"] == s.notes
+
+
+def test_a_truncated_video_is_warned_and_recorded(tmp_path):
+    import imageio_ffmpeg
+
+    from endogsim.io import load_scene
+
+    frames = (np.random.default_rng(0).uniform(0, 1, (60, 64, 80, 3)) * 255).astype(np.uint8)
+    w = imageio_ffmpeg.write_frames(str(tmp_path / "full.mp4"), (80, 64), fps=30,
+                                    output_params=["-movflags", "+faststart"], macro_block_size=16)  # index first
+    w.send(None)
+    for f in frames:
+        w.send(f)
+    w.close()
+    data = (tmp_path / "full.mp4").read_bytes()
+    (tmp_path / "cut.mp4").write_bytes(data[: len(data) // 2])
+    with pytest.warns(DataWarning, match="but the container says 2 s at 30 fps \\(about 60 frames\\): the file is "
+                                         "probably truncated"):
+        s = load_scene(tmp_path / "cut.mp4")
+    assert s.num_frames < 50 and "truncated" in s.notes[0]
+    assert not load_scene(tmp_path / "full.mp4").notes
