@@ -550,3 +550,30 @@ def test_a_truncated_video_is_warned_and_recorded(tmp_path):
         s = load_scene(tmp_path / "cut.mp4")
     assert s.num_frames < 50 and "truncated" in s.notes[0]
     assert not load_scene(tmp_path / "full.mp4").notes
+
+
+# ------------------------------------------------------------------------------------------------------ run
+def test_run_stages_are_done_only_while_their_inputs_and_outputs_match(tiny, other, tmp_path):
+    from endogsim.pipeline.run import PipelineConfig, run_pipeline
+
+    cfg = PipelineConfig(recon={**RECON, "resolution_scale": 1.0}, tool_motion="truth")
+    out = tmp_path / "run"
+
+    def run(data, **kw) -> list:
+        seen = []
+        run_pipeline(data, out, cfg, truth=data, stop_after="scenario", on_stage=lambda s, st: seen.append((s, st)),
+                     **kw)
+        return [st for _, st in seen if st != "start"]
+
+    assert run(tiny) == ["done", "done"]
+    assert run(tiny) == ["skip", "skip"]
+    (out / "scene" / "scene.json").write_text("{")  # a truncated stage file: that stage runs again
+    assert run(tiny) == ["skip", "done"]
+    metrics = out / "recon" / "metrics.json"
+    metrics.write_bytes(metrics.read_bytes()[:50])
+    assert run(tiny)[0] == "done"  # resumed from its checkpoint and exported again
+    state = strict_json(out / "run.json")
+    assert set(state["stages"]["reconstruct"]) >= {"done", "inputs", "outputs"}
+    with pytest.raises(DataError, match="was made from .*--fresh"):  # another dataset into this run folder
+        run(other)
+    assert run(other, fresh=True) == ["done", "done"]
