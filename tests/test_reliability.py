@@ -161,6 +161,12 @@ def test_read_only_output_folder_is_one_line(tiny, tmp_path):
         ro.chmod(0o700)
 
 
+def test_an_output_file_that_is_a_folder_is_one_line(tiny, tmp_path):
+    with pytest.raises(IsADirectoryError, match="a folder, not a file to write"):
+        write_json_atomic(tmp_path, {})
+    one_line_error(cli("materials", "init", tiny, "--out", tmp_path), f"{tmp_path}: a folder, not a file to write")
+
+
 def test_cli_turns_os_errors_naming_a_file_into_one_line(tmp_path):
     import typer
 

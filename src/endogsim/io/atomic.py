@@ -17,6 +17,7 @@ them in the enclosing object under ``"non_finite"`` (key -> "nan", "inf" or "-in
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -37,12 +38,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 
     The temporary file ends in ``suffix`` (default: ``path``'s own), so writers that pick the format from
     the name (encoders, image writers) do the right thing. The parent folder is created. On an exception
-    the temporary file is removed and the exception re-raised.
+    the temporary file is removed and the exception re-raised. A ``path`` that is a folder, or a folder
+    that cannot be written, raises an ``OSError`` naming it.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "a folder, not a file to write", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{suffix}")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{suffix}")
+    except OSError as exc:  # name the folder, not the temporary file
+        raise type(exc)(exc.errno, exc.strerror, str(path.parent)) from None
     os.close(fd)
     tmp = Path(tmp)
     try:

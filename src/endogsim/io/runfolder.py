@@ -82,7 +82,7 @@ def _exclusive(folder: Path, command: str) -> Iterator[None]:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            raise DataError(f"{folder}: cannot create its lock file {lock} ({exc.strerror})") from None
+            raise DataError(f"{folder}: cannot write in {lock.parent} ({exc.strerror}); choose another --out") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
