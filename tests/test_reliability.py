@@ -583,3 +583,28 @@ def test_run_stages_are_done_only_while_their_inputs_and_outputs_match(tiny, oth
     with pytest.raises(DataError, match="was made from .*--fresh"):  # another dataset into this run folder
         run(other)
     assert run(other, fresh=True) == ["done", "done"]
+
+
+# ------------------------------------------------------------------------------------------------------ kill and resume
+@pytest.mark.slow
+def test_a_sigkilled_identify_resumes_to_the_same_result_and_leaves_no_lock(tiny, tmp_path):
+    import signal
+
+    from endogsim.identify import IdentifyConfig, run_identify
+
+    args = ["identify", str(tiny), "--iters", "4", "--frame-stride", "2", "--no-video", "--time-budget", "600"]
+    ref = run_identify(tiny, tmp_path / "ref", config=IdentifyConfig(iters=4, frame_stride=2, time_budget=600),
+                       video=False)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src"), "OMP_NUM_THREADS": "1"}
+    p = subprocess.Popen([sys.executable, "-c", "from endogsim.cli.main import app; app()", *args, "--out", str(tmp_path / "cut")],
+                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = tmp_path / "cut" / "checkpoint.pt"
+    while not ckpt.is_file() and p.poll() is None:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGKILL)
+    assert p.wait() == -signal.SIGKILL and not (tmp_path / "cut" / "metrics.json").exists()
+    r = cli(*args, "--out", tmp_path / "cut")  # the killed holder's lock went with it
+    assert r.exit_code == 0, r.output
+    assert not (tmp_path / ".cut.lock").exists()
+    got = strict_json(tmp_path / "cut" / "metrics.json")
+    assert got["materials"] == strict_json(tmp_path / "ref" / "metrics.json")["materials"] == ref["materials"]
