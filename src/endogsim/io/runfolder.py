@@ -214,8 +214,8 @@ def check_npz(path: str | os.PathLike, keys: tuple[str, ...], what: str = "cache
 
 
 def _reason(exc: Exception) -> str:
-    """The exception's type and the first line of its message, for a one-line error."""
-    first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
+    """The exception's type and the first sentence of its message, for a one-line error."""
+    first = str(exc).strip().splitlines()[0].split(". ")[0][:120] if str(exc).strip() else ""
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
