@@ -8,7 +8,9 @@ A *run folder* is the ``--out`` of a command that writes one (``reconstruct``, `
   writable, and, when the command fails, removes the folders it created if they are still empty.
 - The lock is an OS file lock (``flock``) on a sibling file ``.<name>.lock`` that holds the holder's PID
   and command; a second command on the same folder is refused with that PID. The OS releases the lock
-  when the holder exits, however it exits, so a killed run leaves no stale lock behind.
+  when the holder exits, however it exits: the file a killed run leaves behind locks nothing.
+- :func:`provenance` records what a run folder is made from (``provenance.json``) and
+  :func:`check_provenance` refuses to continue it with other frames.
 - :func:`frames_digest` and :func:`tree_digest` are content hashes for provenance records and for
   checking that a stage's inputs and outputs are still the ones it recorded.
 - :func:`load_torch_file` and :func:`check_npz` read a resumable state or say, in one line, that the
@@ -39,8 +41,8 @@ try:  # POSIX; elsewhere run folders are not locked
 except ImportError:  # pragma: no cover - Windows
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["run_folder", "lock_path", "frames_digest", "tree_digest", "json_digest", "load_torch_file",
-           "check_npz"]
+__all__ = ["run_folder", "lock_path", "PROVENANCE", "provenance", "check_provenance", "frames_digest", "tree_digest",
+           "json_digest", "load_torch_file", "check_npz"]
 
 #: Locks this process holds: resolved folder -> nesting depth (a command may re-enter its own folder).
 _held: dict[str, int] = {}
