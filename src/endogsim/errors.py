@@ -1,7 +1,8 @@
 """Exceptions that carry a message meant for the user.
 
 Every error the package raises on bad input is an :class:`EndoGSimError`; the CLI prints its
-message without a traceback. Subclasses say which stage refused the input.
+message without a traceback. Subclasses say which stage refused the input. Input that is read with an
+assumption or a repair gives a :class:`DataWarning` instead (and the outputs record it).
 """
 
 
@@ -28,3 +29,8 @@ class SimulationError(EndoGSimError):
 class IdentificationError(EndoGSimError):
     """Identification cannot go on: a loss term or a gradient is NaN/inf (the message names the frame and
     the quantity)."""
+
+
+class DataWarning(UserWarning):
+    """A dataset was read with an assumption or a repair (default intrinsics, saturated depth, a truncated
+    video); ``Scene.notes`` records it too."""

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -29,17 +31,39 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def user_errors(func: F) -> F:
-    """Turn an :class:`EndoGSimError` into a one-line red message and exit code 2 (no traceback)."""
+    """Turn an :class:`EndoGSimError` into a one-line red message and exit code 2 (no traceback).
+
+    An ``OSError`` that names its file (a read-only folder, a full disk, a path that is a file) is
+    reported the same way: the file and the system's reason.
+    """
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return func(*args, **kwargs)
         except EndoGSimError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, markup=True)
-            raise typer.Exit(code=2) from None
+            _error(str(exc))
+        except OSError as exc:
+            if exc.filename is None:
+                raise
+            _error(f"{exc.filename}: {exc.strerror or type(exc).__name__}")
 
     return wrapper  # type: ignore[return-value]
+
+
+def _error(message: str) -> None:
+    # soft_wrap: one line, however narrow the terminal (a log or a test reads the first line)
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True, soft_wrap=True)
+    raise typer.Exit(code=2) from None
+
+
+def show_warnings_as_lines() -> None:
+    """Print every warning as one yellow line on stderr ("warning: ..."), without Python's file and line."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001 - warnings API
+        err_console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+
+    warnings.showwarning = show
 
 
 def progress() -> Progress:

@@ -97,6 +97,7 @@ def register(app: typer.Typer) -> None:
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
+        fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
     ) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
@@ -109,6 +110,6 @@ def register(app: typer.Typer) -> None:
         ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction)
-        state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer())
+        state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer(), fresh=fresh)
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")
 

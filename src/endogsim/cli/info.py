@@ -37,6 +37,7 @@ def info(
     else:
         rows.append(("depth", "no"))
     rows.append(("masks", "yes" if s.object_masks is not None else "no (all pixels tissue id 0)"))
+    rows += [("note", n) for n in s.notes]
     print_table("Scene", ["field", "value"], rows)
 
     if s.object_masks is not None:

@@ -47,6 +47,7 @@ def _register() -> None:
 
 
 _register()
+common.show_warnings_as_lines()
 
 
 def main() -> None:  # pragma: no cover - console entry point wrapper

@@ -36,6 +36,8 @@ def register(app: typer.Typer) -> None:
                                      "ENDOGSIM_MLLM_API_KEY or OPENAI_API_KEY."),
         cache: Path = typer.Option(None, help="MLLM answer cache folder (default: <out folder>/mllm_cache)."),
         timeout: float = typer.Option(60.0, help="Per-request timeout in seconds."),
+        total_timeout: float = typer.Option(300.0, help="Bound on the seconds of all MLLM requests together; "
+                                            "objects left when it is used up take the prior."),
         manual_E: float = typer.Option(1e4, "--manual-E", help="manual backend: E in Pa."),
         manual_nu: float = typer.Option(0.45, "--manual-nu", help="manual backend: Poisson ratio."),
         manual_density: float = typer.Option(1000.0, "--manual-density", help="manual backend: kg/m^3."),
@@ -57,7 +59,7 @@ def register(app: typer.Typer) -> None:
         cfg = MaterialInitConfig(
             backend=backend, regime=regime,  # type: ignore[arg-type]
             manual=ManualMaterial(E=manual_E, nu=manual_nu, density=manual_density),
-            mllm=MLLMConfig(model=model, base_url=base_url, timeout_s=timeout,
+            mllm=MLLMConfig(model=model, base_url=base_url, timeout_s=timeout, total_timeout_s=total_timeout,
                             cache_dir=cache if cache is not None else out.parent / "mllm_cache"),
         )
         with warnings.catch_warnings(record=True) as caught:

@@ -35,9 +35,8 @@ def register(app: typer.Typer) -> None:
         from endogsim.pipeline.simulate import simulate_interaction
 
         inter = load_interaction(interaction)
-        if frames is not None:
-            inter = inter.model_copy(update={"frames": frames})
-            inter = type(inter).model_validate(inter.model_dump())
+        if frames is not None:  # validated like a file's value (2 to 400 frames)
+            inter = load_interaction({**inter.model_dump(), "frames": frames}, where=f"--frames {frames}")
         with console.status(f"simulating {inter.name} ..."):
             s = simulate_interaction(scene, inter, materials, out, fps=fps, write_ply_sequence=not no_ply, device=device)
         print_table(f"{inter.name} on {s['scene']} ({s['frames']} frames, {s['substeps']} substeps/frame)",

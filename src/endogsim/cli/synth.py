@@ -46,9 +46,10 @@ def register(app: typer.Typer) -> None:
             raise DataError("--out DIR is required (the folder to write the scene to)")
         if scene is None and from_dir is None:
             raise DataError("give a scene name (see `endogsim synth --list`) or --from DATA_DIR")
+        from endogsim.io.runfolder import run_folder
         from endogsim.synth.generate import synthesize
 
-        with progress() as bar:
+        with run_folder(out, "synth"), progress() as bar:
             tasks: dict[str, int] = {}
 
             def cb(stage: str, done: int, total: int) -> None:

@@ -229,7 +229,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
     mrows.append(["FID", fid_value])
     init_m = metrics.get("init_metrics")
     if isinstance(init_m, dict):
-        mrows += [[f"init {k}", v] for k, v in init_m.items()]
+        mrows += [[f"init {k}", v] for k, v in init_m.items() if k != "non_finite"]
     parts.append("<h2>Metrics</h2>" + _table(["metric", "value"], mrows) + f'<p class="note">{_e(fid_note)}</p>')
 
     # Simulations.

@@ -7,14 +7,15 @@ from pathlib import Path
 
 import numpy as np
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, MaterialError
 from endogsim.identify.config import IdentifyConfig
-from endogsim.identify.optimize import identify
+from endogsim.identify.optimize import CHECKPOINT_NAME, identify
 from endogsim.identify.report import write_outputs
+from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.scene.folder import SimScene, load_sim_scene
 
-__all__ = ["initial_field", "run_identify", "INIT_CHOICES"]
+__all__ = ["initial_field", "check_field_objects", "run_identify", "INIT_CHOICES"]
 
 INIT_CHOICES = ("manual", "prior", "mllm", "replay")
 
@@ -59,7 +60,8 @@ def run_identify(
 
     Args:
         scene: a scene folder (``endogsim synth`` layout).
-        out: run folder (created; a checkpoint there is resumed unless ``resume`` is False).
+        out: run folder (created and locked for the run; a checkpoint there is resumed unless ``resume`` is
+            False; a corrupt checkpoint or flow cache is refused before any work).
         init: initialiser or material JSON file (see :func:`initial_field`).
         config: identification options.
         progress: callback(iteration, iters, info).
@@ -69,9 +71,38 @@ def run_identify(
     """
     cfg = config or IdentifyConfig()
     out = Path(out)
-    if not resume and (out / "checkpoint.pt").is_file():
-        (out / "checkpoint.pt").unlink()
-    pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device)
-    fld, strict = initial_field(pb, init)
-    result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict)
-    return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)
+    with run_folder(out, "identify"):
+        _check_resumable_state(out, resume)
+        pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device)
+        fld, strict = initial_field(pb, init)
+        check_field_objects(pb, fld, init)
+        result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict)
+        return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)
+
+
+def _check_resumable_state(out: Path, resume: bool) -> None:
+    """Refuse a corrupt checkpoint or flow cache in ``out`` before any work (offering --fresh); with
+    ``resume`` False, remove the checkpoint and a corrupt cache (a readable one is keyed by the frames)."""
+    ckpt, flow = out / CHECKPOINT_NAME, out / "observed_flow.npz"
+    if not resume:
+        ckpt.unlink(missing_ok=True)
+    elif ckpt.is_file():
+        load_torch_file(ckpt)
+    if flow.is_file():
+        try:
+            check_npz(flow, ("flow", "key"), what="observed-flow cache")
+        except DataError:
+            if resume:
+                raise
+            flow.unlink()
+
+
+def check_field_objects(problem: SimScene, fld: MaterialField, where: str) -> None:
+    """Refuse a material field with records for objects the scene does not have (a file made for another
+    scene); ``where`` names the field's origin for the message."""
+    known = {o.id for o in problem.spec.objects}
+    extra = [f"{r.name!r} (id {r.object_id})" for r in fld.records if r.object_id not in known]
+    if extra:
+        have = ", ".join(f"{o.name!r} (id {o.id})" for o in problem.spec.objects)
+        raise MaterialError(f"{where}: material record(s) for {', '.join(extra)}, which scene {problem.spec.name!r} "
+                            f"({problem.folder}) does not have; its objects are {have}")

@@ -5,6 +5,9 @@ folder, then renamed onto the destination (``os.replace`` is atomic on one file 
 temporary file is removed and the destination is left as it was. :func:`atomic_folder` does the same for a
 whole folder (a temporary sibling renamed into place).
 
+JSON files are always valid JSON: :func:`write_json_atomic` writes NaN and infinities as ``null`` and notes
+them in the enclosing object under ``"non_finite"`` (key -> "nan", "inf" or "-inf").
+
     with atomic_path(out / "video.mp4") as tmp:      # tmp keeps the suffix, so encoders pick the format
         encode(tmp)
     write_json_atomic(out / "metrics.json", metrics)
@@ -14,7 +17,9 @@ whole folder (a temporary sibling renamed into place).
 
 from __future__ import annotations
 
+import errno
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -23,8 +28,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "atomic_folder", "write_json_atomic", "write_text_atomic", "save_torch_atomic",
-           "save_npz_atomic"]
+__all__ = ["atomic_path", "atomic_folder", "write_json_atomic", "finite_json", "write_text_atomic",
+           "save_torch_atomic", "save_npz_atomic"]
 
 
 @contextmanager
@@ -33,12 +38,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 
     The temporary file ends in ``suffix`` (default: ``path``'s own), so writers that pick the format from
     the name (encoders, image writers) do the right thing. The parent folder is created. On an exception
-    the temporary file is removed and the exception re-raised.
+    the temporary file is removed and the exception re-raised. A ``path`` that is a folder, or a folder
+    that cannot be written, raises an ``OSError`` naming it.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "a folder, not a file to write", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{suffix}")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{suffix}")
+    except OSError as exc:  # name the folder, not the temporary file
+        raise type(exc)(exc.errno, exc.strerror, str(path.parent)) from None
     os.close(fd)
     tmp = Path(tmp)
     try:
@@ -77,11 +88,56 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     return Path(path)
 
 
+#: The key under which :func:`write_json_atomic` notes the values it wrote as null.
+NON_FINITE_KEY = "non_finite"
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float replaced by None; each dict that held one gets a
+    ``"non_finite"`` entry naming its keys (``"key"`` or ``"key[3]"`` inside a list) and what they were.
+
+    A ``"non_finite"`` entry already present is kept for the keys that are still null (a file read back
+    and written again keeps its notes).
+    """
+
+    def clean(v: Any, key: str, notes: dict[str, str]) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            notes[key] = str(v)
+            return None
+        if isinstance(v, dict):
+            return clean_dict(v)
+        if isinstance(v, (list, tuple)):
+            return [clean(x, f"{key}[{i}]", notes) for i, x in enumerate(v)]
+        return v
+
+    def clean_dict(d: dict) -> dict:
+        notes: dict[str, str] = {}
+        out = {k: clean(v, str(k), notes) for k, v in d.items() if k != NON_FINITE_KEY}
+        old = d.get(NON_FINITE_KEY)
+        if isinstance(old, dict):
+            notes = {k: v for k, v in old.items() if _value_at(out, k) is None} | notes
+        if notes:
+            out[NON_FINITE_KEY] = notes
+        return out
+
+    return clean(obj, "", {})
+
+
+def _value_at(d: dict, key: str) -> Any:
+    """``d["a"][1][2]`` for key "a[1][2]" (0 where there is no such value: "not null")."""
+    name, *idx = key.replace("]", "").split("[")
+    v = d.get(name, 0)
+    for i in idx:
+        v = v[int(i)] if isinstance(v, list) and i.isdigit() and int(i) < len(v) else 0
+    return v
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    """Write ``obj`` as indented JSON to ``path`` atomically; NaN and infinities become null, noted
+    (:func:`finite_json`)."""
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=2)
+            json.dump(finite_json(obj), f, indent=2, allow_nan=False)
     return Path(path)
 
 

@@ -12,11 +12,12 @@ Every command that takes ``DATA`` reads it with :func:`load_scene`.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, DataWarning
 from endogsim.io import loaders
 from endogsim.io.scene import Scene
 
@@ -95,6 +96,9 @@ def load_scene(path: str | Path, *, downscale: float = 1.0, max_frames: int | No
         fps: override the frame rate used for ``times`` (seconds).
         options: format-specific options (``depth_scale`` for EndoNeRF, ``hfov_deg`` for CholecSeg8K and
             videos).
+
+    Every assumption the loader made (``Scene.notes``: default intrinsics, saturated depth, a truncated
+    video) is also issued as a :class:`~endogsim.errors.DataWarning`.
     """
     if max_frames is not None and max_frames < 1:
         raise DataError(f"max_frames must be >= 1, got {max_frames}")
@@ -106,4 +110,7 @@ def load_scene(path: str | Path, *, downscale: float = 1.0, max_frames: int | No
         if not fmt.mask_dir:
             raise DataError(f"{path}: {fmt.name} data carries its own masks; mask_dir is not used")
         options["mask_dir"] = mask_dir
-    return fmt.load(path, downscale=downscale, max_frames=max_frames, fps=fps, **options)
+    scene = fmt.load(path, downscale=downscale, max_frames=max_frames, fps=fps, **options)
+    for note in scene.notes:
+        warnings.warn(f"{path}: {note}", DataWarning, stacklevel=2)
+    return scene

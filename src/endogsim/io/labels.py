@@ -41,6 +41,9 @@ Plain videos without masks: everything is tissue id 0, as for EndoNeRF.
 
 from __future__ import annotations
 
+from typing import Any
+
+from endogsim.errors import DataError
 from endogsim.io.scene import ObjectLabel
 
 #: The id stored in ``object_masks`` for pixels that carry no label.
@@ -78,3 +81,38 @@ CHOLECSEG8K_LABELS: dict[int, ObjectLabel] = {
 #: CholecSeg8K ids that are not physical objects (the black border outside the field of view).
 CHOLECSEG8K_NON_OBJECTS = frozenset({50})
 CHOLECSEG8K_UNLABELLED_VALUE = 255
+
+
+def label_table(obj: Any, where: str) -> dict[int, ObjectLabel]:
+    """A label table from any JSON layout the package writes (``where`` names its file in errors).
+
+    - ``{"<id>": {"name": str, "is_tool": bool, "klass" or "class": str}, ...}``: a ``labels.json``, a
+      reconstruction's ``objects.json``; ``klass`` defaults to the name, ``is_tool`` to false;
+    - the same under a ``"labels"`` key;
+    - a scene folder's ``scene.json``: ``{"objects": [{"id", "name", "rigid", "class"}, ...]}``; ``class``
+      defaults to "unknown_tissue", ``rigid`` (a tool) to false.
+    """
+    if isinstance(obj, dict) and isinstance(obj.get("objects"), list):
+        out = {}
+        for i, o in enumerate(obj["objects"]):
+            try:
+                out[int(o["id"])] = ObjectLabel(int(o["id"]), str(o["name"]), bool(o.get("rigid", False)),
+                                                str(o.get("class", "unknown_tissue")))
+            except (KeyError, TypeError, ValueError, AttributeError):
+                raise DataError(f"{where}: objects[{i}] must be {{'id': int, 'name': str, 'rigid': bool, "
+                                f"'class': str}}, got {o!r}") from None
+        return out
+    if isinstance(obj, dict) and isinstance(obj.get("labels"), dict):
+        obj = obj["labels"]
+    if not isinstance(obj, dict):
+        raise DataError(f"{where}: expected a label table {{id: {{name, is_tool, klass}}}} or a scene.json "
+                        "with an 'objects' list")
+    out = {}
+    for k, v in obj.items():
+        try:
+            oid, name = int(k), str(v["name"])
+            out[oid] = ObjectLabel(oid, name, bool(v.get("is_tool", False)), str(v.get("klass") or v.get("class") or name))
+        except (ValueError, TypeError, KeyError, AttributeError):
+            raise DataError(f"{where}: entry {k!r} must be {{'name': str, 'is_tool': bool, 'klass': str}} "
+                            f"under an integer id, got {v!r}") from None
+    return out

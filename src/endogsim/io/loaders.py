@@ -14,7 +14,7 @@ Conventions
   0..105). The EndoNeRF/EndoGaussian loaders use the raw values as scene units (clipped to the 3rd/99.8th
   percentiles); SurgicalGaussian divides them by ``depth_scale=100`` for its own units. None converts to
   metres, so the mm reading is our assumption (it matches the bounds and a ~5-10 cm working distance). We convert to metres with ``depth_scale`` metres per stored unit, default
-  ``1e-3`` (millimetres). 0 means invalid and stays 0. Depth may also be float ``.npy`` or ``.tiff``
+  ``1e-3`` (millimetres). 0 means invalid and stays 0; so does 65535 in a 16-bit PNG (saturated: noted). Depth may also be float ``.npy`` or ``.tiff``
   files (also multiplied by ``depth_scale``); NaN, inf or negative values are refused.
 - EndoGSim scene folders (``endogsim synth`` output, a run's ``scene/``) are EndoNeRF folders with a
   ``scene.json``: its ``depth_scale`` (stored units per metre), ``scenario.frame_dt`` (seconds), camera
@@ -25,6 +25,9 @@ Conventions
   ``CHOLEC_HFOV_DEG = 75`` degrees (typical 0/30-degree laparoscopes: 70-80 degrees), principal point
   at the image centre; 25 fps (the Cholec80 rate).
 - Plain video: the same default field of view; fps from the container (or ``fps=``).
+- Assumptions and repairs (default intrinsics of an EndoNeRF folder without ``poses_bounds.npy``, saturated
+  depth, a video that decodes to fewer frames than its container announces) are recorded in ``Scene.notes``;
+  :func:`endogsim.io.load_scene` warns with them.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ CHOLEC_FPS = 25.0
 CHOLEC_HFOV_DEG = 75.0
 VIDEO_HFOV_DEG = 75.0
 DEFAULT_DEPTH_SCALE = 1e-3  # metres per stored depth unit (EndoNeRF stores ~mm)
+NO_POSES_NOTE = "no poses_bounds.npy"  # the start of the note of an EndoNeRF folder's assumed intrinsics
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 DEPTH_EXTS = (".png", ".npy", ".tif", ".tiff")  # png: 8/16-bit; npy/tiff: may be float
@@ -129,13 +133,26 @@ def _load_endonerf_style_masks(mask_dir: Path, n_all: int, n: int, w0: int, h0: 
     return np.stack(out).astype(np.int32)
 
 
+def _load_npy(path: Path, what: str) -> np.ndarray:
+    """``np.load`` of a ``.npy`` file holding ``what`` (no pickles); DataError when it is not one."""
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read file ({exc.strerror})") from None
+    if magic != b"\x93NUMPY":
+        raise DataError(f"{path}: not a NumPy .npy file (no NUMPY header: a text or other file under that name?); "
+                        f"expected {what} saved with numpy.save")
+    try:
+        return np.load(str(path), allow_pickle=False)
+    except Exception as exc:  # numpy raises ValueError/OSError/EOFError on truncated or pickled files
+        raise DataError(f"{path}: unreadable .npy file ({type(exc).__name__}: {exc}); expected {what}") from None
+
+
 # ----------------------------------------------------------------------------------------------- EndoNeRF
 def _read_poses_bounds(path: Path, n_images: int) -> tuple[np.ndarray, float, float, float, np.ndarray]:
     """LLFF poses_bounds.npy -> (poses [N,4,4] camera-to-world, H, W, focal, bounds [N,2])."""
-    try:
-        arr = np.load(str(path), allow_pickle=False)
-    except Exception as exc:  # numpy raises ValueError/OSError/EOFError/UnpicklingError on bad files
-        raise DataError(f"{path}: not a readable .npy file ({type(exc).__name__}: {exc})") from None
+    arr = _load_npy(path, "the LLFF poses array (N, 17)")
     if arr.ndim != 2 or arr.shape[1] != 17:
         raise DataError(f"{path}: poses have shape {arr.shape}, expected (N, 17) in LLFF layout")
     if not np.isfinite(arr).all():
@@ -154,33 +171,43 @@ def _read_poses_bounds(path: Path, n_images: int) -> tuple[np.ndarray, float, fl
 
 
 def _load_depth(depth_dir: Path, n_all: int, n: int, w0: int, h0: int, size: tuple[int, int],
-                depth_scale: float) -> np.ndarray:
-    """Depth maps (png 8/16-bit, float .npy or .tiff; 0 = invalid) -> [n, h, w] float32 metres."""
+                depth_scale: float, notes: list[str]) -> np.ndarray:
+    """Depth maps (png 8/16-bit, float .npy or .tiff; 0 = invalid) -> [n, h, w] float32 metres.
+
+    16-bit pixels at 65535 are saturated (farther than the format holds, or no measurement), not a depth:
+    they become invalid (0) and ``notes`` says how many there were.
+    """
     paths = sorted((p for p in depth_dir.iterdir() if p.suffix.lower() in DEPTH_EXTS),
                    key=_natural_key)
     _match_count(paths, n_all, depth_dir, "depth maps")
     paths = paths[:n]
-    out = []
+    out, saturated, total = [], 0, 0
     for p in paths:
         if p.suffix.lower() == ".npy":
-            try:
-                d = np.load(str(p), allow_pickle=False)
-            except Exception as exc:
-                raise DataError(f"{p}: not a readable .npy depth map ({type(exc).__name__})") from None
+            d = _load_npy(p, "a depth map")
             if d.ndim == 3 and d.shape[-1] == 1:
                 d = d[..., 0]
             if d.ndim != 2 or not np.issubdtype(d.dtype, np.number):
                 raise DataError(f"{p}: depth must be a 2-D numeric array, got {d.dtype} {d.shape}")
             d = d.astype(np.float64)
         else:
-            d = read_grey(p).astype(np.float64)
+            d = read_grey(p)
+            if d.dtype == np.uint16:
+                sat = d == np.iinfo(np.uint16).max
+                saturated += int(sat.sum())
+                d = np.where(sat, 0, d)
+            d = d.astype(np.float64)
         if not np.isfinite(d).all():
             raise DataError(f"{p}: depth contains NaN or inf")
         if (d < 0).any():
             raise DataError(f"{p}: depth contains negative values (min {d.min():.4g})")
         if d.shape != (h0, w0):
             raise DataError(f"{p}: depth is {d.shape[1]}x{d.shape[0]}, frames are {w0}x{h0}")
+        total += d.size
         out.append(resize((d * depth_scale).astype(np.float32), size, nearest=True))
+    if saturated:
+        notes.append(f"{saturated / total:.1%} of the depth pixels in {depth_dir.name}/ are saturated at 65535 "
+                     f"(would read as {65535 * depth_scale:.4g} m); they are treated as invalid (no depth)")
     return np.stack(out)
 
 
@@ -198,7 +225,7 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         mask_dir: tool-mask folder to use instead of ``folder/masks``.
     Returns:
         a Scene with K from the LLFF focal (cx, cy at the image centre; without ``poses_bounds.npy``
-        a default 75-degree horizontal FOV), object ids 0 tissue / 1 tool.
+        a default 75-degree horizontal FOV, noted in ``notes``), object ids 0 tissue / 1 tool.
     """
     folder = Path(folder)
     img_dir = folder / "images"
@@ -218,19 +245,22 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         poses = poses[:max_frames] if poses is not None else None
     frames, w0, h0 = _load_frames(paths, downscale)
     n, h, w = frames.shape[:3]
+    notes = []
     if focal is not None:
         if (round(H), round(W)) != (h0, w0):
             raise DataError(f"{pb}: poses say {round(W)}x{round(H)} but images are {w0}x{h0}")
         K0 = np.array([[focal, 0, w0 / 2], [0, focal, h0 / 2], [0, 0, 1]], dtype=np.float64)
     else:
         K0 = default_K(w0, h0, VIDEO_HFOV_DEG)
+        notes.append(f"{NO_POSES_NOTE}: intrinsics assumed (a {VIDEO_HFOV_DEG:g}-degree horizontal field of view, "
+                     f"fx = fy = {K0[0, 0]:.0f} px at {w0}x{h0})")
     K = _scale_K(K0, w0, h0, w, h)
 
     if depth_scale is None:
         depth_scale = DEFAULT_DEPTH_SCALE
     depth = None
     if (folder / "depth").is_dir():
-        depth = _load_depth(folder / "depth", n_all, n, w0, h0, (w, h), depth_scale)
+        depth = _load_depth(folder / "depth", n_all, n, w0, h0, (w, h), depth_scale, notes)
     mdir = Path(mask_dir) if mask_dir is not None else folder / "masks"
     masks = None
     if mask_dir is not None or mdir.is_dir():
@@ -240,7 +270,7 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         frames=frames, times=np.arange(n, dtype=np.float64) / rate, K=K, depth=depth,
         object_masks=masks,
         labels=L.endonerf_labels(masks is not None), downscale=float(downscale), source=str(folder),
-        frame_names=[p.name for p in paths], poses=poses,
+        frame_names=[p.name for p in paths], poses=poses, notes=notes,
     )
 
 
@@ -324,6 +354,11 @@ def load_video(path: str | Path, *, mask_dir: str | Path | None = None, downscal
         raise DataError(f"{path}: cannot decode video ({msg[-1] if msg else type(exc).__name__})") from None
     if not raw:
         raise DataError(f"{path}: empty sequence (no decodable frames)")
+    notes = []
+    expected = float(meta.get("duration") or 0) * float(meta.get("fps") or 0)
+    if (max_frames is None or len(raw) < max_frames) and len(raw) < 0.9 * expected - 1:
+        notes.append(f"only {len(raw)} frames could be decoded, but the container says {meta['duration']:g} s at "
+                     f"{meta['fps']:g} fps (about {expected:.0f} frames): the file is probably truncated")
     size = _target_size(w0, h0, downscale)
     frames = np.stack([resize(f, size, nearest=False).astype(np.float32) / 255.0 for f in raw])
     n, h, w = frames.shape[:3]
@@ -336,7 +371,7 @@ def load_video(path: str | Path, *, mask_dir: str | Path | None = None, downscal
         frames=frames, times=np.arange(n, dtype=np.float64) / rate,
         K=_scale_K(default_K(w0, h0, hfov_deg), w0, h0, w, h), object_masks=masks,
         labels=L.endonerf_labels(masks is not None), downscale=float(downscale), source=str(path),
-        frame_names=[f"{path.name}#{i}" for i in range(n)],
+        frame_names=[f"{path.name}#{i}" for i in range(n)], notes=notes,
     )
 
 
@@ -394,15 +429,12 @@ def load_scene_folder(folder: str | Path, *, downscale: float = 1.0, max_frames:
             K0, w0, h0 = np.asarray(cam["K"], np.float64).reshape(3, 3), int(cam["width"]), int(cam["height"])
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"{path}: malformed camera ({exc})") from None
-        scene = replace(scene, K=_scale_K(K0, w0, h0, scene.width, scene.height))
+        scene = replace(scene, K=_scale_K(K0, w0, h0, scene.width, scene.height),
+                        notes=[n for n in scene.notes if not n.startswith(NO_POSES_NOTE)])
     objects = meta.get("objects")
     mdir = folder / "object_masks"
     if objects and mdir.is_dir():
-        try:
-            labels = {int(o["id"]): ObjectLabel(int(o["id"]), str(o["name"]), bool(o.get("rigid", False)),
-                                                str(o.get("class", "unknown_tissue"))) for o in objects}
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{path}: malformed objects ({exc})") from None
+        labels = L.label_table({"objects": objects}, str(path))
         files = _list_images(mdir)[: scene.num_frames]
         if len(files) != scene.num_frames:
             raise DataError(f"{mdir}: {len(files)} object masks for {scene.num_frames} frames")

@@ -42,6 +42,8 @@ class Scene:
         source: folder or file the scene was read from.
         frame_names: [T] file name (or index) of each frame, for error messages and reports.
         poses: optional [T, 4, 4] camera-to-world transforms (identity for a fixed endoscope).
+        notes: what the loader had to assume or repair (default intrinsics, saturated depth, a truncated
+            video); :func:`endogsim.io.load_scene` warns with each, and outputs record them.
     """
 
     frames: np.ndarray
@@ -54,6 +56,7 @@ class Scene:
     source: str = ""
     frame_names: list[str] = field(default_factory=list)
     poses: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.frames.ndim != 4 or self.frames.shape[-1] != 3:

@@ -10,9 +10,12 @@ from typing import Literal
 import numpy as np
 
 from endogsim.errors import DataError, MaterialError
+from endogsim.io.labels import label_table
+from endogsim.io.runfolder import PROVENANCE
 from endogsim.io.scene import ObjectLabel, Scene
 from endogsim.materials.field import MaterialField, MaterialRecord
 from endogsim.materials.mllm import (
+    MLLMBudget,
     MLLMConfig,
     ObjectQuery,
     make_client,
@@ -93,6 +96,7 @@ def initialise_materials(
 
     meta["prompt_version"] = PROMPT_VERSION
     client = None if replay else make_client(cfg.mllm)[0]
+    budget = MLLMBudget(cfg.mllm.total_timeout_s)
     for oid, lab in sorted(labels.items()):
         t = _best_frame(scene.object_masks, oid)
         if t is None:
@@ -102,59 +106,71 @@ def initialise_materials(
             continue
         images = object_images(scene.frames[t], scene.object_masks[t] == oid)
         q = ObjectQuery(oid, lab.name, lab.klass, lab.is_tool, images)
-        records.append(query_object(q, cfg.mllm, cfg.regime, client=client, replay=replay))
+        records.append(query_object(q, cfg.mllm, cfg.regime, client=client, replay=replay, budget=budget))
+    # The backend asked for is not always the one that answered: count the records' real sources.
+    from_prior = [r.name for r in records if r.source.startswith("prior")]
+    meta["sources"] = {cfg.backend: len(records) - len(from_prior), "prior": len(from_prior)}
+    if from_prior:
+        meta["note"] = (f"{len(from_prior)} of {len(records)} objects took the prior instead of an MLLM answer "
+                        f"({', '.join(from_prior)}); each record's source says why")
     return MaterialField(records, meta=meta)
 
 
 def load_labels_json(path: str | Path) -> dict[int, ObjectLabel]:
-    """Read a run folder's ``labels.json``: ``{"<id>": {"name": str, "is_tool": bool, "klass": str}, ...}``.
-
-    ``klass`` may be omitted (defaults to the name); ``is_tool`` defaults to false.
-    """
+    """Read a label table from a JSON file: a ``labels.json`` (``{"<id>": {"name": str, "is_tool": bool,
+    "klass": str}, ...}``), a reconstruction's ``objects.json`` or a scene folder's ``scene.json``
+    (:func:`endogsim.io.labels.label_table`)."""
     path = Path(path)
     try:
         obj = json.loads(path.read_text())
     except FileNotFoundError:
         raise DataError(f"{path}: labels file not found") from None
-    except json.JSONDecodeError as exc:
+    except (OSError, ValueError) as exc:
         raise DataError(f"{path}: not valid JSON ({exc})") from None
-    if isinstance(obj, dict) and "labels" in obj and isinstance(obj["labels"], dict):
-        obj = obj["labels"]  # scene.json style: the label table under "labels"
-    if not isinstance(obj, dict):
-        raise DataError(f"{path}: expected an object {{id: {{name, is_tool, klass}}}}")
-    out: dict[int, ObjectLabel] = {}
-    for k, v in obj.items():
-        try:
-            oid = int(k)
-            name = str(v["name"])
-            out[oid] = ObjectLabel(oid, name, bool(v.get("is_tool", False)), str(v.get("klass") or name))
-        except (ValueError, TypeError, KeyError, AttributeError):
-            raise DataError(f"{path}: entry {k!r} must be {{'name': str, 'is_tool': bool, 'klass': str}} "
-                            f"under an integer id, got {v!r}") from None
-    return out
+    return label_table(obj, str(path))
+
+
+#: Files that hold a folder's label table, in the order they are looked for: a label file, a reconstruction
+#: run folder, a scene folder (``endogsim synth``), an ``endogsim run`` folder (its scene, its reconstruction).
+LABEL_FILES = ("labels.json", "objects.json", "scene.json", "scene/scene.json", "recon/objects.json")
+
+
+def _is_dataset(path: Path) -> bool:
+    """Whether a registered dataset format reads ``path``."""
+    from endogsim.io.formats import detect_format
+
+    try:
+        detect_format(path)
+    except DataError:
+        return False
+    return True
 
 
 def load_objects(path: str | Path, need_images: bool = False, downscale: float | None = None
                  ) -> tuple[dict[int, ObjectLabel], Scene | None]:
-    """Labels (and, for a data folder, the Scene) from a data folder, a run folder or a labels.json file.
+    """Labels (and, when ``need_images``, the Scene) of a data folder, a run folder or a label JSON file.
 
-    Run folders: ``labels.json`` (see :func:`load_labels_json`) or ``scene.json`` with a ``labels`` table.
-    Anything else is read with ``endogsim.io.load_scene``.
+    Without ``need_images`` a folder's label table comes from the first of :data:`LABEL_FILES` it holds,
+    else from reading it as a dataset (``endogsim.io.load_scene``). With ``need_images`` (the mllm and
+    replay backends show the model each object) the path must be a dataset: a data folder, a video or a
+    scene folder.
     """
+    from endogsim.io import load_scene  # type: ignore[attr-defined]
+
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    for cand in ([path] if path.is_file() else [path / "labels.json", path / "scene.json"]):
-        if cand.is_file() and cand.suffix == ".json":
-            labels = load_labels_json(cand)
-            if need_images:
-                raise DataError(f"{cand}: a label table has no images; the mllm/replay backends need a data folder")
-            return labels, None
-    try:
-        from endogsim.io import load_scene  # type: ignore[attr-defined]
-    except ImportError:
-        raise DataError(f"{path}: no labels.json here and this build cannot read data folders "
-                        "(endogsim.io.load_scene missing)") from None
+    if path.is_file() and path.suffix == ".json":
+        if need_images:
+            raise DataError(f"{path}: a label table has no images; the mllm/replay backends need a data folder")
+        return load_labels_json(path), None
+    label_file = next((path / n for n in LABEL_FILES if (path / n).is_file()), None) if path.is_dir() else None
+    if label_file is not None and not need_images:
+        return load_labels_json(label_file), None
+    if label_file is not None and not _is_dataset(path):
+        made_from = json.loads((path / PROVENANCE).read_text()).get("data") if (path / PROVENANCE).is_file() else None
+        raise DataError(f"{label_file}: a label table has no images; the mllm/replay backends need a data folder"
+                        + (f" (this run was made from {made_from})" if made_from else ""))
     kwargs = {} if downscale is None else {"downscale": downscale}
     scene = load_scene(path, **kwargs)
     return dict(scene.labels), scene

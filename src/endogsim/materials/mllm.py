@@ -7,7 +7,10 @@ table (the class range widened by ``plausibility_factor``); a rejected answer is
 
 Privacy and safety: the API key is read from an environment variable only (``ENDOGSIM_MLLM_API_KEY``, then
 ``OPENAI_API_KEY``), is never written to the cache, a log or an error message (exception texts are scrubbed),
-and images go only to the configured ``base_url``. Timeouts and retries are bounded by the client config.
+and images go only to the configured ``base_url``. Timeouts and retries are bounded by the client config;
+one initialisation shares an :class:`MLLMBudget`: after a connection error or timeout the endpoint is not
+asked again (every later object takes the prior at once), and all requests together stay within
+``total_timeout_s``. Each record's ``source`` says where its value really came from.
 Every answer is cached on disk, keyed by (model, prompt version, image hash, prompt text hash), so the
 ``replay`` backend reproduces a run offline.
 """
@@ -20,6 +23,7 @@ import json
 import math
 import os
 import re
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,6 +87,7 @@ class MLLMConfig:
         model: model name sent to the endpoint ("gpt-4o", "qwen2.5-vl-7b", ...).
         base_url: OpenAI-compatible endpoint (None = api.openai.com). Images are sent here and nowhere else.
         timeout_s: per-request client timeout in seconds.
+        total_timeout_s: bound on the seconds of all requests of one initialisation (see :class:`MLLMBudget`).
         max_retries: client-side retries of connection errors, timeouts, HTTP 408/409/429/5xx (with backoff).
         max_attempts: answers requested per object (1 + at most 2 stricter retries).
         plausibility_factor: accepted E lies in [E_min / f, E_max * f] of the prior class range.
@@ -93,11 +98,34 @@ class MLLMConfig:
     model: str = "gpt-4o"
     base_url: str | None = None
     timeout_s: float = 60.0
+    total_timeout_s: float = 300.0
     max_retries: int = 2
     max_attempts: int = 3
     plausibility_factor: float = 10.0
     cache_dir: str | Path = Path.home() / ".cache" / "endogsim" / "mllm"
     max_tokens: int = 600
+
+
+class MLLMBudget:
+    """What the queries of one initialisation share: a deadline (``total_timeout_s`` from its start) and, once
+    the endpoint failed to connect or answer in time, the reason every later query skips it (fail fast)."""
+
+    def __init__(self, total_timeout_s: float) -> None:
+        self.total_timeout_s = total_timeout_s
+        self.deadline = time.monotonic() + total_timeout_s
+        self.unreachable: str | None = None
+
+    def remaining(self) -> float:
+        """Seconds left before the deadline (<= 0: used up)."""
+        return self.deadline - time.monotonic()
+
+    def skip_reason(self) -> str | None:
+        """Why the endpoint is not to be asked any more, or None."""
+        if self.unreachable is not None:
+            return f"endpoint unreachable ({self.unreachable})"
+        if self.remaining() <= 0:
+            return f"the MLLM time budget of {self.total_timeout_s:g} s is used up"
+        return None
 
 
 # ---- key handling ---------------------------------------------------------------------------------------------------
@@ -336,8 +364,12 @@ def make_client(cfg: MLLMConfig) -> tuple[Any, str]:
 
 
 def query_object(q: ObjectQuery, cfg: MLLMConfig, regime: str = "in_vivo", client: Any = None,
-                 replay: bool = False) -> MaterialRecord:
-    """The material of one object from the MLLM (or, with ``replay``, from the cache only)."""
+                 replay: bool = False, budget: MLLMBudget | None = None) -> MaterialRecord:
+    """The material of one object from the MLLM (or, with ``replay``, from the cache only).
+
+    ``budget``: shared by the objects of one initialisation (fail fast, bounded total time); None: this
+    query alone, bounded by the client's timeout and retries.
+    """
     key = cache_key(cfg.model, q.image_hash, q.prompt_text(regime))
     cached = read_cache(cfg.cache_dir, key)
     if replay:
@@ -352,6 +384,9 @@ def query_object(q: ObjectQuery, cfg: MLLMConfig, regime: str = "in_vivo", clien
     if cached is not None and cached.get("status") == "ok":
         return answer_to_record(cached["answer"], q.object_id, q.name, q.klass, q.is_tool, regime,
                                 cfg.plausibility_factor, source=f"mllm:{cfg.model} (cached)")
+    budget = budget or MLLMBudget(math.inf)
+    if budget.skip_reason():
+        return _fallback(q, regime, budget.skip_reason(), None)
 
     import openai
 
@@ -364,11 +399,16 @@ def query_object(q: ObjectQuery, cfg: MLLMConfig, regime: str = "in_vivo", clien
     reasons: list[str] = []
     json_mode = True
     for _ in range(max(1, cfg.max_attempts)):
+        if budget.skip_reason():
+            reasons.append(budget.skip_reason())
+            break
         msgs = build_messages(q.name, q.klass, regime, q.images, reasons)
+        # every try of the client (1 + max_retries) within what is left of the budget
+        timeout = min(cfg.timeout_s, budget.remaining() / (1 + cfg.max_retries))
         try:
             try:
                 resp = client.chat.completions.create(
-                    model=cfg.model, messages=msgs, temperature=0.0, max_tokens=cfg.max_tokens,
+                    model=cfg.model, messages=msgs, temperature=0.0, max_tokens=cfg.max_tokens, timeout=timeout,
                     **({"response_format": {"type": "json_object"}} if json_mode else {}),
                 )
             except openai.BadRequestError:
@@ -377,10 +417,19 @@ def query_object(q: ObjectQuery, cfg: MLLMConfig, regime: str = "in_vivo", clien
                 # Some local servers reject response_format; the prompt alone asks for JSON, so ask once without.
                 json_mode = False
                 resp = client.chat.completions.create(
-                    model=cfg.model, messages=msgs, temperature=0.0, max_tokens=cfg.max_tokens)
+                    model=cfg.model, messages=msgs, temperature=0.0, max_tokens=cfg.max_tokens, timeout=timeout)
+        except openai.APIConnectionError as exc:  # also timeouts: the endpoint is not asked again
+            budget.unreachable = f"{type(exc).__name__}: {scrub(str(exc), api_key)}"
+            return _fallback(q, regime, budget.unreachable, api_key)
         except openai.APIError as exc:
             # Transport failures were already retried (bounded) by the client: give up on this object.
             return _fallback(q, regime, f"{type(exc).__name__}: {scrub(str(exc), api_key)}", api_key)
+        except ValueError as exc:  # a body that is not JSON although the server says it is
+            return _fallback(q, regime, f"the endpoint did not answer in the chat-completions format "
+                                        f"({type(exc).__name__})", api_key)
+        if not hasattr(resp, "choices"):  # e.g. an HTML page served with status 200
+            return _fallback(q, regime, f"the endpoint did not answer in the chat-completions format (got "
+                                        f"{scrub(str(resp), api_key)[:60]!r})", api_key)
         if not resp.choices:
             reasons.append("empty reply (no choices)")
             continue

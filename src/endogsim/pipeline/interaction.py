@@ -85,16 +85,16 @@ class ToolSpec(Located):
 
 class ForceSpec(Located):
     """Body acceleration ``acceleration`` (m/s^2, world) on particles within ``radius`` (m) of the point,
-    for ``t_start <= t < t_end`` (s)."""
+    for ``t_start <= t < t_end`` (s; ``t_end`` null: to the end of the clip)."""
 
     acceleration: tuple[float, float, float]
     radius: float = Field(0.01, gt=0, le=0.2)
     t_start: float = Field(0.0, ge=0)
-    t_end: float = Field(float("inf"), gt=0)
+    t_end: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _window(self):
-        if not self.t_end > self.t_start:
+        if self.t_end is not None and not self.t_end > self.t_start:
             raise ValueError(f"force window [{self.t_start}, {self.t_end}) s is empty")
         if not all(math.isfinite(a) and abs(a) <= 1e4 for a in self.acceleration):
             raise ValueError(f"acceleration {list(self.acceleration)} must be finite and at most 1e4 m/s^2")
@@ -138,15 +138,16 @@ def builtin_interactions() -> list[str]:
     return sorted(p.name[:-5] for p in _interaction_dir().iterdir() if p.name.endswith(".json"))
 
 
-def load_interaction(spec: str | Path | dict | Interaction) -> Interaction:
+def load_interaction(spec: str | Path | dict | Interaction, where: str = "interaction") -> Interaction:
     """An :class:`Interaction` from a built-in name, a JSON file, a dict, or an Interaction.
+
+    ``where`` names a dict's origin in error messages (files and built-ins name themselves).
 
     Raises:
         DataError: unknown name, unreadable file, or a schema violation (the message names the field).
     """
     if isinstance(spec, Interaction):
         return spec
-    where = "interaction"
     if isinstance(spec, dict):
         obj = spec
     else:

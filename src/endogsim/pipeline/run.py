@@ -9,8 +9,12 @@ Each stage reads and writes plain files in its own sub-folder of the run folder 
   RUN/report.html   the run report
   RUN/run.json      which stages are done, their seconds and key results (written atomically)
 
-A stage counts as done only once ``run.json`` says so; an interrupted stage starts again (reconstruction and
-identification then continue from their own checkpoints), so ``run`` can always be re-invoked to resume.
+A stage counts as done only while ``run.json`` says so *and* its inputs and outputs are still the ones it
+recorded: the digest of its options and of the earlier stages' outputs (the dataset's content for the
+reconstruction), and the digest of its own output folder or file. Otherwise it runs again, and so does every
+later stage; an interrupted stage starts again (reconstruction and identification then continue from their
+own checkpoints, which refuse other data or settings), so ``run`` can always be re-invoked to resume.
+``fresh`` starts every stage over. The run folder is locked while ``run`` works on it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from typing import Literal, get_args
 from endogsim.errors import DataError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.io.atomic import write_json_atomic
+from endogsim.io.runfolder import json_digest, run_folder, tree_digest
 from endogsim.recon.config import ReconConfig
 
 #: Where identification's tool colliders get their motion: the reconstruction, or a ground truth (benchmark).
@@ -33,6 +38,9 @@ ToolMotion = Literal["reconstructed", "truth"]
 __all__ = ["PipelineConfig", "run_pipeline", "STAGES"]
 
 STAGES = ("reconstruct", "scenario", "identify", "simulate", "report")
+#: Each stage's output, relative to the run folder: what its "done" is checked against.
+OUTPUTS = {"reconstruct": "recon", "scenario": "scene", "identify": "identify", "simulate": "simulate",
+           "report": "report.html"}
 
 
 @dataclass
@@ -81,6 +89,7 @@ def run_pipeline(
     truth: str | Path | None = None,
     on_stage: Callable[[str, str], None] | None = None,
     stop_after: str | None = None,
+    fresh: bool = False,
 ) -> dict:
     """Run (or resume) every stage on a dataset folder; returns ``run.json``'s content.
 
@@ -92,37 +101,57 @@ def run_pipeline(
             materials and flow are used for the scenario and for the metrics.
         on_stage: callback(stage, "start" | "done" | "skip") for progress display.
         stop_after: test hook: stop after this stage.
+        fresh: start every stage over (checkpoints of the reconstruction and the identification too).
     """
 
     cfg = config or PipelineConfig()
     data, out = Path(data), Path(out)
     if not data.exists():
         raise DataError(f"{data}: no such dataset folder or video")
-    out.mkdir(parents=True, exist_ok=True)
+    with run_folder(out, "run"):
+        return _run_stages(data, out, cfg, truth, on_stage, stop_after, fresh)
+
+
+def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | None,
+                on_stage: Callable[[str, str], None] | None, stop_after: str | None, fresh: bool) -> dict:
     state_path = out / "run.json"
-    state = _load_state(state_path)
+    state = {"stages": {}} if fresh else _load_state(state_path)
     state.update({"data": str(data), "truth": str(truth) if truth else None, "config": asdict(cfg)})
+    # What each stage is made from besides the earlier stages' outputs (files by content digest).
+    options = {"reconstruct": {"data": tree_digest(data, exclude=out), "recon": asdict(cfg.recon)},
+               "scenario": {"truth": None if truth is None else tree_digest(truth), "tool_motion": cfg.tool_motion},
+               "identify": {"init": cfg.materials_backend, "init_file": tree_digest(cfg.materials_backend),
+                            "identify": asdict(cfg.identify), "video": cfg.video},
+               "simulate": {"interaction": cfg.interaction}, "report": {}}
+    upstream: list[str | None] = []  # output digests of the stages before
 
     def stage(name: str, fn: Callable[[], dict]) -> dict:
-        if state["stages"].get(name, {}).get("done"):
+        inputs = json_digest([options[name], upstream])
+        rec = state["stages"].get(name, {})
+        if rec.get("done") and rec.get("inputs") == inputs and rec.get("outputs") == tree_digest(out / OUTPUTS[name]):
             if on_stage:
                 on_stage(name, "skip")
-            return state["stages"][name]
+            upstream.append(rec["outputs"])
+            return rec
         if on_stage:
             on_stage(name, "start")
         t0 = time.perf_counter()
         result = fn()
-        state["stages"][name] = {"done": True, "seconds": round(time.perf_counter() - t0, 2), **result}
+        outputs = tree_digest(out / OUTPUTS[name])
+        state["stages"][name] = {"done": True, "seconds": round(time.perf_counter() - t0, 2), **result,
+                                 "inputs": inputs, "outputs": outputs}
         write_json_atomic(state_path, state)
         if on_stage:
             on_stage(name, "done")
+        upstream.append(outputs)
         return state["stages"][name]
 
     def reconstruct_stage() -> dict:
         from endogsim.recon.train import reconstruct
 
-        m = reconstruct(data, out / "recon", cfg.recon)
-        return {k: m[k] for k in ("psnr_masked", "psnr_endonerf", "ssim", "training_seconds", "num_gaussians") if k in m}
+        m = reconstruct(data, out / "recon", cfg.recon, resume=not fresh)
+        keep = ("psnr_masked", "psnr_endonerf", "ssim", "training_seconds", "num_gaussians", "data_notes")
+        return {k: m[k] for k in keep if k in m}
 
     def scenario_stage() -> dict:
         from endogsim.pipeline.scene_from_recon import scene_from_reconstruction
@@ -134,7 +163,7 @@ def run_pipeline(
         from endogsim.identify import run_identify
 
         m = run_identify(out / "scene", out / "identify", init=cfg.materials_backend,
-                         config=cfg.identify, video=cfg.video, evaluate_init=truth is not None)
+                         config=cfg.identify, video=cfg.video, evaluate_init=truth is not None, resume=not fresh)
         keep = ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "iterations", "seconds", "materials")
         return {k: m[k] for k in keep if k in m} | ({"init_metrics": m["init_metrics"]} if "init_metrics" in m else {})
 

@@ -13,6 +13,7 @@ identified) materials.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -22,6 +23,7 @@ import torch
 
 from endogsim.errors import DataError, MaterialError, SimulationError
 from endogsim.io.atomic import write_json_atomic
+from endogsim.io.runfolder import run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.gaussians.model import covariance_to_scale_rot
 from endogsim.pipeline.interaction import Interaction, Located, load_interaction
@@ -89,6 +91,22 @@ def surface_point(problem, loc: Located) -> np.ndarray:
     return cand[np.argmin(np.linalg.norm(cand - cam, axis=1))]
 
 
+def _check_inside_box(problem, inter: Interaction, what: str, part: str, path: np.ndarray) -> None:
+    """Refuse an interaction that moves ``what`` (its ``part`` following ``path`` [T, 3], metres) out of the
+    simulation box or into its walls: the simulator would lose it (no contact, no force) without a word."""
+    box, cells = problem.scenario.box, problem.mpm.wall_padding
+    lo = np.asarray(box.lo, float) + cells * box.size / problem.mpm.grid_res
+    hi = np.asarray(box.lo, float) + box.size - cells * box.size / problem.mpm.grid_res
+    out = (path < lo) | (path > hi)
+    if out.any():
+        t, k = np.argwhere(out)[0]
+        axis = "xyz"[k]
+        raise DataError(f"interaction {inter.name!r} moves {what} out of the simulation box of scene "
+                        f"{problem.spec.name!r}: at frame {t} its {part} is at {axis} = {path[t, k]:.4f} m, outside "
+                        f"[{lo[k]:.4f}, {hi[k]:.4f}] m (the {box.size:g} m box less its {cells}-cell walls); "
+                        "make the offsets smaller (the box is not grown)")
+
+
 def build_interaction(problem, inter: Interaction):
     """The problem with the interaction's scenario, tool transforms and Gaussians, and resolved points.
 
@@ -142,6 +160,12 @@ def build_interaction(problem, inter: Interaction):
                 raise DataError("grasp.with_tool moves the tool that 'tool' already drives; set with_tool false")
             driven[tid] = (p - np.asarray(tools[tid].tip, float)) + off
 
+    for tid, shift in driven.items():
+        _check_inside_box(problem, inter, f"tool {problem.spec.object(tid).name!r} (id {tid})", "tip",
+                          np.asarray(tools[tid].tip, float) + shift)
+    if inter.grasp is not None:
+        _check_inside_box(problem, inter, "the grasp", "point", np.asarray(info["grasp_point"]) + off)
+
     colliders, tool_tf, hidden = [], {}, []
     for tid, t in tools.items():
         if tid in driven:
@@ -171,7 +195,7 @@ def build_interaction(problem, inter: Interaction):
             raise DataError(f"force: no particle within {f.radius} m of {p.tolist()}")
         info["force_particles"] = int(mask.sum())
         forces.append(ExternalForce(acceleration=tuple(f.acceleration), particle_mask=torch.as_tensor(mask),
-                                    t_start=f.t_start, t_end=f.t_end))
+                                    t_start=f.t_start, t_end=math.inf if f.t_end is None else f.t_end))
 
     g = problem.gaussians
     if hidden:
@@ -189,22 +213,19 @@ def build_interaction(problem, inter: Interaction):
 
 def _materials(problem, materials: str | Path | MaterialField | None, default: Path | None) -> MaterialField:
     """The field to simulate with: a field, a JSON file, "truth" (scene.json), or an initialiser name."""
-    from endogsim.identify.run import INIT_CHOICES, initial_field
-    from endogsim.materials.field import MaterialRecord
+    from endogsim.identify.run import INIT_CHOICES, check_field_objects, initial_field
 
     if materials is None:
         materials = default if default is not None else "prior"
     if isinstance(materials, MaterialField):
         fld = materials
     elif str(materials) == "truth":
-        fld = MaterialField([MaterialRecord(name=o.name, object_id=o.id, klass=o.klass, rigid=o.rigid,
-                                            model="rigid" if o.rigid else o.model, E=o.E, nu=o.nu,
-                                            density=o.density, source="ground truth")
-                             for o in problem.spec.objects])
+        fld = MaterialField([o.material_record() for o in problem.spec.objects])
     elif str(materials) in INIT_CHOICES:
         fld, _ = initial_field(problem, str(materials))
     else:
         fld = MaterialField.load(materials)
+    check_field_objects(problem, fld, str(materials) if not isinstance(materials, MaterialField) else "materials")
     have = {r.object_id for r in fld.records}
     missing = [f"{problem.spec.object(i).name} ({i})" for i in problem.deformable_ids if i not in have]
     if missing:
@@ -237,14 +258,11 @@ def simulate_interaction(
     Returns:
         the summary dict (also ``out/summary.json``).
     Raises:
-        DataError (bad scene / interaction), MaterialError (materials), SimulationError (unstable or
-        diverged simulation).
+        DataError (bad scene / interaction, a tool moved out of the simulation box, ``out`` in use by another
+        command), MaterialError (materials, or records for objects the scene does not have), SimulationError
+        (unstable or diverged simulation). Inputs are checked before anything is written.
     """
-    from endogsim.gaussians.ply import write_ply
-    from endogsim.io.video_writer import write_frames_png, write_video
-    from endogsim.physics import simulate
     from endogsim.scene.folder import load_sim_scene
-    from endogsim.scene.forward import frame_gaussians, render_sequence
 
     out = Path(out)
     inter = load_interaction(interaction)
@@ -252,6 +270,18 @@ def simulate_interaction(
     base = load_sim_scene(folder, device=device)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
+    with run_folder(out, "simulate"):
+        return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress)
+
+
+def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: dict, folder: Path, out: Path,
+                        fps: float, write_ply_sequence: bool, progress) -> dict:
+    """Run the built interaction and write ``out`` (see :func:`simulate_interaction`)."""
+    from endogsim.gaussians.ply import write_ply
+    from endogsim.io.video_writer import write_frames_png, write_video
+    from endogsim.physics import simulate
+    from endogsim.scene.forward import frame_gaussians, render_sequence
+
     T = inter.frames
 
     t0 = time.perf_counter()

@@ -38,6 +38,8 @@ __all__ = ["PreparedScene", "prepare_scene", "split_frames", "repeated_frames", 
 
 #: mean absolute difference (RGB in [0, 1]) under which two consecutive frames are the same picture
 REPEAT_THRESHOLD = 0.5 / 255
+#: Smallest training image side (pixels): the optical flow of the point tracks and the SSIM window need it.
+MIN_TRAINING_SIZE = 32
 
 
 def split_frames(num_frames: int) -> tuple[list[int], list[int]]:
@@ -156,6 +158,10 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     from endogsim.priors.segmentation import segment_scene
 
     scene = load_scene(path, downscale=1.0 / config.resolution_scale, max_frames=config.max_frames)
+    if min(scene.width, scene.height) < MIN_TRAINING_SIZE:
+        raise DataError(f"{path}: the frames are {scene.width}x{scene.height} px at resolution scale "
+                        f"{config.resolution_scale:g}; reconstruction needs at least {MIN_TRAINING_SIZE} px a side "
+                        "(optical flow, SSIM windows): raise --resolution-scale or use larger frames")
     dev = "cuda" if config.device == "cuda" else "cpu"
     dp = estimate_depth(scene, config.depth_method, config.depth_weights, dev, config.working_distance)
     seg = segment_scene(scene, config.seg_method, config.seg_checkpoint, config.seg_config, dev)

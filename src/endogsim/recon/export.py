@@ -80,6 +80,7 @@ def export_run(tr: "Trainer") -> dict:
         "camera_motion": tr.camera_motion is not None,
         "tissue_pixel_fraction": float(tr.prep.tissue[tr.prep.test].mean()) if tr.prep.test else None,
         "repeated_frames": [] if tr.prep.repeated is None else np.nonzero(tr.prep.repeated)[0].tolist(),
+        "data_notes": list(sc.notes),
         "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
                      "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
                      "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
@@ -91,7 +92,8 @@ def export_run(tr: "Trainer") -> dict:
                              "neighbours' poses registered to the test frame with the model frozen (BARF's "
                              "and NoPe-NeRF's test-time pose optimisation; pose_alignment gives each "
                              "correction); *_interpolated_pose: from the interpolation alone, as is history",
-                     "render": "tissue model only (tools are a separate model), except psnr_full"},
+                     "render": "tissue model only (tools are a separate model), except psnr_full",
+                     "data_notes": "what the loader assumed or repaired reading the data (also warned)"},
         "init": tr.init_info, "history": tr.history,
     }
     write_json_atomic(out / "metrics.json", metrics)

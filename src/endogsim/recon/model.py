@@ -19,6 +19,8 @@ Run-folder files (all written atomically):
 ``renders/test/*.png``     test-frame renders (tissue model); ``renders/test_full/`` with tools
 ``metrics.json``           PSNR/SSIM (both protocols), training seconds, Gaussian count, priors used
 ``config.json``            the configuration of the run
+``provenance.json``        what the run was made from: data path, frame count and size, a content hash
+                           of the frames, configuration (a resume with other frames is refused)
 ``checkpoint.pt``          training state for resuming
 =========================  ==================================================================
 """

@@ -52,6 +52,7 @@ from endogsim.evaluate.image_metrics import masked_l1, ssim_map
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.render import render_gaussians
 from endogsim.io.atomic import save_torch_atomic, write_json_atomic
+from endogsim.io.runfolder import PROVENANCE, check_provenance, load_torch_file, provenance, run_folder
 from endogsim.recon.camera_motion import CameraMotion
 from endogsim.recon.config import ReconConfig
 from endogsim.recon.data import PreparedScene, prepare_scene
@@ -536,27 +537,32 @@ def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | Non
         out_dir: run folder; if it holds ``checkpoint.pt`` and ``resume``, training continues from it.
         config: :class:`ReconConfig` (default: CPU defaults).
         progress: callback(iteration, total, info) after every iteration.
-        resume: continue from ``out_dir/checkpoint.pt`` when it exists.
+        resume: continue from ``out_dir/checkpoint.pt`` when it exists (refused when the folder was made
+            from other frames: ``provenance.json`` records the data path, frame count and size, a content
+            hash of the frames and the configuration).
         stop_after: test hook: stop after this many iterations with a checkpoint (raises Interrupted).
     """
     cfg = config or ReconConfig()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("always")
-        prep = prepare_scene(data, cfg)
-    trainer = Trainer(prep, cfg, out)
-    ckpt = out / "checkpoint.pt"
-    if resume and ckpt.is_file():
-        st = torch.load(ckpt, map_location="cpu", weights_only=False)
-        if st["config"] != cfg.to_dict():
-            warnings.warn(f"{ckpt}: the checkpoint was made with a different configuration; continuing with the "
-                          "checkpoint's model and the new schedule", stacklevel=2)
-        trainer.load_state(st)
-    else:
-        trainer.init_fresh()
-    write_json_atomic(out / "config.json", cfg.to_dict())
-    trainer.run(progress, stop_after)
-    metrics = trainer.export()
-    trainer.save_checkpoint()
+    with run_folder(out, "reconstruct"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            prep = prepare_scene(data, cfg)
+        trainer = Trainer(prep, cfg, out)
+        made_from = provenance(data, prep.scene.frames, cfg.to_dict())
+        ckpt = out / "checkpoint.pt"
+        if resume and ckpt.is_file():
+            check_provenance(out, made_from)
+            st = load_torch_file(ckpt)
+            if st["config"] != cfg.to_dict():
+                warnings.warn(f"{ckpt}: the checkpoint was made with a different configuration; continuing with "
+                              "the checkpoint's model and the new schedule", stacklevel=2)
+            trainer.load_state(st)
+        else:
+            trainer.init_fresh()
+        write_json_atomic(out / PROVENANCE, made_from)
+        write_json_atomic(out / "config.json", cfg.to_dict())
+        trainer.run(progress, stop_after)
+        metrics = trainer.export()
+        trainer.save_checkpoint()
     return ReconResult(out, metrics)

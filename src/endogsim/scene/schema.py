@@ -3,7 +3,10 @@
 A scene folder is written by :func:`endogsim.synth.synthesize` (a benchmark scene, whose objects carry
 their ground-truth materials) or by :func:`endogsim.pipeline.scene_from_reconstruction` (a real video,
 whose materials are unknown: ``E``, ``nu``, ``density`` null). It holds everything identification and
-simulation need to rebuild the scenario; :func:`load_scene_spec` reads it back into :class:`SceneSpec`.
+simulation need to rebuild the scenario; :func:`load_scene_spec` reads it back into :class:`SceneSpec` and
+checks it: ground-truth materials are possible ones (the checks of
+:class:`~endogsim.materials.field.MaterialRecord`), the images cover ``frames``, and every path in
+``files`` stays inside the folder.
 """
 
 from __future__ import annotations
@@ -15,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, MaterialError
+from endogsim.materials.field import MaterialRecord
 
 __all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ObjectBoundary", "ScenarioSpec", "CameraSpec", "SceneSpec",
            "load_scene_spec"]
@@ -37,6 +41,20 @@ class SceneObject:
     nu: float | None = None
     density: float | None = None
     model: str = "fixed_corotated"
+
+    @property
+    def has_material(self) -> bool:
+        """Whether the ground-truth material is given (E, nu and density)."""
+        return self.E is not None and self.nu is not None and self.density is not None
+
+    def material_record(self) -> MaterialRecord:
+        """The ground-truth material as a :class:`~endogsim.materials.field.MaterialRecord` (source "ground
+        truth"; its checks apply: E > 0, -1 < nu < 0.5, density > 0, a known model)."""
+        if not self.has_material:
+            raise MaterialError(f"object {self.name!r} (id {self.id}) has no ground-truth material (E, nu, density)")
+        return MaterialRecord(name=self.name, object_id=self.id, klass=self.klass, rigid=self.rigid,
+                              model="rigid" if self.rigid else self.model, E=self.E, nu=self.nu,
+                              density=self.density, source="ground truth")
 
 
 @dataclass
@@ -205,7 +223,7 @@ def load_scene_spec(path: str | Path) -> SceneSpec:
         sc["tools"] = [ToolCapsule(**t) for t in sc["tools"]]
         sc["ground_truth"] = SimSettings(**sc["ground_truth"])
         sc["identification"] = SimSettings(**sc["identification"])
-        return SceneSpec(
+        spec = SceneSpec(
             name=d["name"], seed=d["seed"], frames=d["frames"], objects=objects, scenario=ScenarioSpec(**sc),
             camera=CameraSpec(**d["camera"]), depth_scale=d["depth_scale"], files=d.get("files", {}),
             source=d.get("source", "procedural"), version=d.get("version", SCENE_JSON_VERSION),
@@ -213,3 +231,46 @@ def load_scene_spec(path: str | Path) -> SceneSpec:
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{p}: malformed scene.json ({exc})") from exc
+    _check_materials(spec, p)
+    _check_files(spec, p)
+    return spec
+
+
+def _check_materials(spec: SceneSpec, path: Path) -> None:
+    """Ground-truth materials are numbers (or all null: unknown) that pass :class:`MaterialRecord`'s checks."""
+    for o in spec.objects:
+        given = {k: getattr(o, k) for k in ("E", "nu", "density") if getattr(o, k) is not None}
+        for k, v in given.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise DataError(f"{path}: object {o.name!r} has {k} = {v!r}; it must be a number (null when unknown)")
+        if given and len(given) < 3:
+            raise DataError(f"{path}: object {o.name!r} gives {', '.join(given)} but not all of E, nu and density "
+                            "(give all three, or null for all when unknown)")
+        if given:
+            try:
+                o.material_record()
+            except MaterialError as exc:
+                raise MaterialError(f"{path}: impossible ground truth: {exc}") from None
+
+
+def _check_files(spec: SceneSpec, path: Path) -> None:
+    """``frames`` is a count the images cover, and every path in ``files`` stays inside the scene folder."""
+    folder = path.parent.resolve()
+    if isinstance(spec.frames, bool) or not isinstance(spec.frames, int) or spec.frames < 2:
+        raise DataError(f"{path}: frames = {spec.frames!r} must be an integer >= 2")
+    for key, pattern in spec.files.items():
+        if not isinstance(pattern, str) or not pattern:
+            raise DataError(f"{path}: files.{key} = {pattern!r} must be a path inside the scene folder")
+        target = (folder / pattern).resolve()
+        if Path(pattern).is_absolute() or not target.is_relative_to(folder):
+            raise DataError(f"{path}: files.{key} = {pattern!r} points outside the scene folder {folder}; paths in "
+                            "'files' must stay inside it")
+    images = spec.files.get("images", "images/frame-%06d.color.png")
+    try:
+        last = folder / (images % (spec.frames - 1))
+    except (TypeError, ValueError):
+        raise DataError(f"{path}: files.images = {images!r} must hold one %d for the frame number") from None
+    if not last.is_file():
+        first_missing = next(t for t in range(spec.frames) if not (folder / (images % t)).is_file())
+        raise DataError(f"{path}: frames = {spec.frames}, but its images end at frame {first_missing - 1} "
+                        f"({images % first_missing} is missing)")

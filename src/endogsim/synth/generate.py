@@ -54,7 +54,7 @@ from endogsim.physics import (
 from endogsim.scene.particles import SceneParticles, build_particles, gaussian_surfaces, scenario_forces
 from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
 from endogsim.synth.scenes import BuiltScene, build_procedural
-from endogsim.synth.suite import GENERATOR_REVISION
+from endogsim.synth.suite import GENERATOR_REVISION, check_size
 
 __all__ = ["synthesize", "ground_truth_problem", "simulate_built", "render_built", "write_scene_folder", "DEPTH_SCALE"]
 
@@ -248,6 +248,7 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         from_dir: build frame-0 Gaussians from a real scene folder (:mod:`endogsim.synth.from_data`).
         progress: optional callback (stage, done, total).
     """
+    check_size(frames=frames)  # before anything is built: tool trajectories have one entry per frame
     torch.manual_seed(seed)
     if from_dir is not None:
         from endogsim.synth.from_data import build_from_data
@@ -255,6 +256,7 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         b = build_from_data(from_dir, name=scene_name, seed=seed, frames=frames, scale=scale, **from_kwargs)
     else:
         b = build_procedural(scene_name, seed=seed, frames=frames, scale=1.0 if scale is None else scale)
+    check_size(b.frames, b.camera.width, b.camera.height, len(b.particles))
     if progress is not None:
         progress("simulate", 0, 1)
     tx, tcov, particles = simulate_built(b)

@@ -8,11 +8,37 @@ from typing import Any
 
 from endogsim.errors import DataError
 
-__all__ = ["GENERATOR_REVISION", "load_suite", "suite_scene_names", "scene_spec"]
+__all__ = ["GENERATOR_REVISION", "MAX_FRAMES", "MAX_IMAGE_SIDE", "MAX_PIXEL_FRAMES", "MAX_PARTICLES", "check_size",
+           "load_suite", "suite_scene_names", "scene_spec"]
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
 GENERATOR_REVISION = 2
+
+
+# Limits of a synthesized scene, checked before the work that would exceed them. Rendering holds every
+# frame in memory (about 40 bytes a pixel: RGB, depth, alpha, ids, flow), so MAX_PIXEL_FRAMES bounds it to
+# about 2 GB; MAX_FRAMES is also the longest interaction (endogsim.pipeline.interaction).
+MAX_FRAMES = 400
+MAX_IMAGE_SIDE = 2048
+MAX_PIXEL_FRAMES = 50_000_000
+MAX_PARTICLES = 2_000_000
+
+
+def check_size(frames: int | None = None, width: int | None = None, height: int | None = None,
+               particles: int | None = None) -> None:
+    """Refuse a scene larger than the limits above (DataError naming the limit); None skips a check."""
+    if frames is not None and not 2 <= frames <= MAX_FRAMES:
+        raise DataError(f"--frames {frames}: a synthesized scene has 2 to {MAX_FRAMES} frames")
+    if width is not None and height is not None:
+        if max(width, height) > MAX_IMAGE_SIDE:
+            raise DataError(f"images of {width}x{height} px: the limit is {MAX_IMAGE_SIDE} px a side (lower --scale)")
+        if frames is not None and frames * width * height > MAX_PIXEL_FRAMES:
+            raise DataError(f"{frames} frames of {width}x{height} px are {frames * width * height / 1e6:.0f} M "
+                            f"pixel-frames; the limit is {MAX_PIXEL_FRAMES / 1e6:.0f} M (about 2 GB while "
+                            "rendering): lower --frames or --scale")
+    if particles is not None and particles > MAX_PARTICLES:
+        raise DataError(f"{particles} particles: the limit is {MAX_PARTICLES} (a smaller or coarser scene)")
 
 
 def load_suite() -> dict[str, Any]:
