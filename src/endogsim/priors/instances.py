@@ -159,8 +159,9 @@ def _label_frame(out: np.ndarray, comps: list[np.ndarray], predicted: np.ndarray
     returns the next free tracklet id."""
     from scipy.optimize import linear_sum_assignment
 
-    active = [int(k) for k in np.unique(predicted) if k > 0]
-    area = {k: int((predicted == k).sum()) for k in active}
+    predicted_ids = [int(k) for k in np.unique(predicted) if k > 0]
+    area = {k: int((predicted == k).sum()) for k in predicted_ids}
+    active = list(predicted_ids)  # not yet given a component
     rest = []
     for m in comps:  # merged blobs: pixels go to the nearest predicted tracklet
         held = [k for k in active if (m & (predicted == k)).sum() >= config.merge_share * area[k]]
@@ -183,9 +184,9 @@ def _label_frame(out: np.ndarray, comps: list[np.ndarray], predicted: np.ndarray
     for i, m in enumerate(rest):
         if i in matched:
             continue
-        overlap = [int((m & (predicted == k)).sum()) for k in active]
+        overlap = [int((m & (predicted == k)).sum()) for k in predicted_ids]
         if overlap and max(overlap) > 0:
-            out[m] = active[int(np.argmax(overlap))]
+            out[m] = predicted_ids[int(np.argmax(overlap))]
             events.append(InstanceEvent(frame, "fragment", f"a {int(m.sum())} px piece joined its instrument"))
         else:
             out[m] = next_id
