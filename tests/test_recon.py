@@ -64,22 +64,32 @@ def _tool(t: float) -> Gaussians:
     return Gaussians.from_points(pts.reshape(-1, 3), col.reshape(-1, 3), 0.0012, object_ids=1, opacity=0.98)
 
 
+def _second_tool(t: float) -> Gaussians:
+    """A second instrument, below the first, sliding the other way (-x) and pointing down-left."""
+    g = _tool(1 - t)
+    shift = torch.tensor([0.004, 0.012, 0.0])
+    mirror = torch.tensor([-1.0, -1.0, 1.0])  # the shaft points the other way about its tip
+    tip = torch.tensor([-0.005 + 0.012 * (1 - t), 0.002, 0.045])
+    return g.with_(means=(g.means - tip) * mirror + tip + shift, object_ids=torch.full_like(g.object_ids, 2))
+
+
 def camera() -> Camera:
     return Camera.from_focal(FOCAL, W, H)
 
 
-def write_sequence(folder: Path, num_frames: int = 6) -> Path:
-    """Render and write the sequence; returns ``folder``."""
+def write_sequence(folder: Path, num_frames: int = 6, second_tool_frames: list[int] | None = None) -> Path:
+    """Render and write the sequence; returns ``folder``. ``second_tool_frames``: frames that also show
+    :func:`_second_tool` (the masks still hold one tool id for both, as EndoNeRF's)."""
     folder = Path(folder)
     for sub in ("images", "depth", "masks"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     cam = camera()
     for i in range(num_frames):
         t = i / max(num_frames - 1, 1)
-        both = Gaussians.concat([_tissue(t), _tool(t)])
+        tools = [_tool(t)] + ([_second_tool(t)] if i in (second_tool_frames or []) else [])
         with torch.no_grad():
-            out = render_gaussians(both, cam, backend="torch")
-            tool = render_gaussians(_tool(t), cam, backend="torch")
+            out = render_gaussians(Gaussians.concat([_tissue(t), *tools]), cam, backend="torch")
+            tool = render_gaussians(Gaussians.concat(tools), cam, backend="torch")
         rgb = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(folder / "images" / f"frame-{i:06d}.color.png"), rgb[..., ::-1])
         np.save(folder / "depth" / f"frame-{i:06d}.depth.npy", (out.depth.numpy() * 1000.0).astype(np.float32))
@@ -253,6 +263,65 @@ def test_tool_motion_interpolates_untrained_frames():
         m.translation[0, 3] = torch.tensor([0.009, 0, 0])  # not trained: must be overwritten
     m.interpolate_missing(torch.tensor([True, False, True, False, False]))
     assert torch.allclose(m.translation[0, :, 0], torch.tensor([0.0, 0.001, 0.002, 0.002, 0.002]))
+
+
+def test_tool_motion_holds_a_vanished_tool_and_interpolates_across_its_gap():
+    m = ToolMotion([1, 2], torch.zeros(2, 3), 8)
+    seen = torch.zeros(2, 8, dtype=torch.bool)
+    seen[0, [0, 1, 2, 6]] = True  # tool 1 leaves the view in frames 3-5 and after frame 6
+    seen[1, [2, 3, 4, 5]] = True  # tool 2 enters at frame 2 and leaves after frame 5
+    with torch.no_grad():
+        m.translation.normal_(0, 0.05)  # unseen frames hold garbage until filled
+        m.rotation.normal_()
+        m.translation[0, 2], m.translation[0, 6] = torch.tensor([0.01, 0.0, 0.0]), torch.tensor([0.01, 0.004, 0.0])
+        m.rotation[0, 2], m.rotation[0, 6] = torch.tensor([0.0, 0.0, 0.1]), torch.tensor([0.0, 0.0, 0.4])
+    before = m.transforms().detach()
+    m.interpolate_missing(seen)
+    M = m.transforms().detach()
+    assert torch.equal(M[seen], before[seen])  # the seen frames keep their poses
+    # across a gap: the straight line, in time, between the poses on either side of it
+    w = torch.tensor([[0.25], [0.5], [0.75]])
+    assert torch.allclose(m.translation[0, 3:6], (1 - w) * m.translation[0, 2] + w * m.translation[0, 6])
+    assert torch.allclose(m.rotation[0, 3:6], torch.tensor([[0.0, 0.0, 0.175], [0.0, 0.0, 0.25], [0.0, 0.0, 0.325]]))
+    # before its first and after its last sighting a tool is held where it was seen, never extrapolated
+    assert torch.allclose(M[0, 7], M[0, 6])
+    assert torch.allclose(M[1, :2], M[1, 2].expand(2, 4, 4)) and torch.allclose(M[1, 6:], M[1, 5].expand(2, 4, 4))
+
+
+@pytest.fixture(scope="module")
+def two_tools(tmp_path_factory) -> Path:
+    """8 frames, two instruments under the one tool id of EndoNeRF masks; the second is out of view in
+    frames 3 and 4."""
+    return write_sequence(tmp_path_factory.mktemp("two") / "scene", 8, second_tool_frames=[0, 1, 2, 5, 6, 7])
+
+
+def test_two_instruments_under_one_mask_id_become_two_tools_with_their_own_motion(two_tools, tmp_path):
+    prep = prepare_scene(two_tools, ReconConfig(**FAST))
+    assert {i: prep.scene.labels[i].name for i in prep.tool_ids} == {1: "tool_1", 2: "tool_2"}
+    ini = initial_gaussians(prep, 1)
+    k = ini.tool_ids.index(2)
+    assert ini.visible[k].tolist() == [True, False, True, False, False, True, True, True]  # frame 1 is held out
+    tr = ini.init_translation[k]  # unseen frames start between the poses around them
+    assert torch.allclose(tr[3:5], tr[2] + torch.tensor([[1 / 3], [2 / 3]]) * (tr[5] - tr[2]), atol=1e-7)
+    trainer = Trainer(prep, ReconConfig(**{**FAST, "point_tracks": False}), tmp_path / "t")
+    trainer.init_fresh()  # a tool out of view in a frame is not rendered there (its pose gets no image gradient)
+    assert trainer._tools_visible_at(3).object_ids.unique().tolist() == [1]
+    assert trainer._tools_visible_at(2).object_ids.unique().tolist() == [1, 2]
+
+    m = reconstruct(two_tools, tmp_path / "run", ReconConfig(**FAST), resume=False)
+    objects = json.loads((tmp_path / "run" / "objects.json").read_text())
+    assert {i: o["name"] for i, o in objects.items() if o["is_tool"]} == {"1": "tool_1", "2": "tool_2"}
+    assert m["tool_instances"]["instances"]["2"]["gaps"] == [[3, 4]]
+    traj = np.load(tmp_path / "run" / "tool_trajectories.npz")
+    a, b = traj["object_1"], traj["object_2"]
+    assert a.shape == b.shape == (8, 4, 4)
+    # each follows its own instrument: the first slides +x, the second -x (12 mm each in truth)
+    assert a[-1, 0, 3] - a[0, 0, 3] > 0.003 and b[-1, 0, 3] - b[0, 0, 3] < -0.003, (a[:, 0, 3], b[:, 0, 3])
+    # where the second is out of view, its pose lies on the line between the poses it was last and next seen in
+    sd = torch.load(tmp_path / "run" / "deformation.pt", weights_only=False)["tool_motion"]["state_dict"]
+    k = m["init"]["tool_ids"].index(2)
+    for p in (sd["translation"][k], sd["rotation"][k]):
+        assert torch.allclose(p[3:5], p[2] + torch.tensor([[1 / 3], [2 / 3]]) * (p[5] - p[2]), atol=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------- densification

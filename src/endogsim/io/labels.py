@@ -37,6 +37,10 @@ id     name                           is_tool  klass
 =====  =============================  =======  ======================
 
 Plain videos without masks: everything is tissue id 0, as for EndoNeRF.
+
+These tables give one id per tool *class*. Reconstruction splits each into one object per instrument
+(:mod:`endogsim.priors.instances`): the first instrument of a class keeps the class's id, further ones get
+new ids and numbered names ("tool_1", "tool_2", "grasper_2") with the class's ``klass``.
 """
 
 from __future__ import annotations

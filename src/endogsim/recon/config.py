@@ -47,6 +47,10 @@ class ReconConfig:
         depth_method / depth_weights: see :mod:`endogsim.priors.depth` ("auto": dataset depth, else the
             offline bowl fallback).
         seg_method / seg_checkpoint / seg_config: see :mod:`endogsim.priors.segmentation`.
+        tool_instances: one object per instrument (:mod:`endogsim.priors.instances`: each tool class of
+            the masks split into instances tracked through time) "on", "off", or "auto": on when the
+            masks give one id per tool class (EndoNeRF masks, CholecSeg8K, the fallback), off when they
+            already give one per instrument (SAM 2 tracks, scene folders of ``endogsim synth``).
         working_distance: metres, for the depth fallback and model-depth rescaling.
         tool_depth_factor: with non-metric depth, tools start at this fraction of the tissue depth
             (instruments sit between the camera and the tissue).
@@ -123,6 +127,7 @@ class ReconConfig:
     seg_method: str = "auto"
     seg_checkpoint: str | None = None
     seg_config: str | None = None
+    tool_instances: Switch = "auto"
     working_distance: float = 0.07
     tool_depth_factor: float = 0.85
     camera_motion: Switch = "auto"
@@ -216,6 +221,7 @@ class ReconConfig:
         if self.time_budget_s is not None and self.time_budget_s <= 0:
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
         for name, choices in (("camera_motion", get_args(Switch)), ("exposure", get_args(Switch)),
+                              ("tool_instances", get_args(Switch)),
                               ("device", ("auto", "cpu", "cuda")), ("backend", ("auto", "torch", "warp", "gsplat"))):
             if getattr(self, name) not in choices:
                 raise DataError(f"{name} {getattr(self, name)!r} must be one of {', '.join(choices)}")

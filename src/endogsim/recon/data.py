@@ -8,6 +8,12 @@ pixel classes the losses use:
 * tool pixels: ids whose label is a tool;
 * neither: unlabelled (-1) and background pixels, left out of every loss and metric.
 
+One object per instrument: masks that give one id per tool *class* (EndoNeRF's single tool id, the
+fallback's, CholecSeg8K's grasper / L-hook) are split into instrument instances tracked through the clip
+(:func:`~endogsim.priors.instances.split_tool_instances`, with the run's optical flow between consecutive
+frames), so every later stage (tool motion, trajectories, objects) sees one rigid object per instrument;
+``ReconConfig.tool_instances`` switches it (:func:`wants_tool_instances`).
+
 The endoscope's field of view (:func:`field_of_view`): pixels labelled background in every training frame
 lie outside the lens's image circle; renders are black there, as the camera's pictures are.
 
@@ -32,9 +38,10 @@ import numpy as np
 
 from endogsim.errors import DataError
 from endogsim.io.scene import Scene
+from endogsim.priors.instances import ToolInstances
 
 __all__ = ["PreparedScene", "prepare_scene", "split_frames", "repeated_frames", "video_times",
-           "field_of_view"]
+           "field_of_view", "wants_tool_instances"]
 
 #: mean absolute difference (RGB in [0, 1]) under which two consecutive frames are the same picture
 REPEAT_THRESHOLD = 0.5 / 255
@@ -105,6 +112,7 @@ class PreparedScene:
         repeated: [T] bool, frames that repeat their predecessor (:func:`repeated_frames`).
         field_of_view: [H, W] bool, pixels inside the endoscope's field of view (:func:`field_of_view`;
             None: all of them).
+        instances: the split of the tool classes into instruments (None: the masks' ids were kept).
     """
 
     scene: Scene
@@ -119,6 +127,7 @@ class PreparedScene:
     times: np.ndarray | None = None
     repeated: np.ndarray | None = None
     field_of_view: np.ndarray | None = None
+    instances: ToolInstances | None = None
 
     @property
     def tool_ids(self) -> list[int]:
@@ -146,6 +155,28 @@ def field_of_view(object_masks: np.ndarray, background_ids: list[int], frames_us
     return ~outside if outside.any() else None
 
 
+def wants_tool_instances(mode: str, seg_source: str, data_format: str) -> bool:
+    """Whether to split tool classes into instances: ``mode`` "on" / "off", or "auto": yes unless the
+    masks already give one id per instrument (``seg_source`` "sam2": one track per prompt;
+    ``data_format`` "endogsim_scene": the ids of the generator's objects)."""
+    if mode == "auto":
+        return seg_source != "sam2" and data_format != "endogsim_scene"
+    return mode == "on"
+
+
+def _split_instances(frames: np.ndarray, masks: np.ndarray, labels: dict, config, device: str) -> ToolInstances:
+    """:func:`~endogsim.priors.instances.split_tool_instances` of ``masks`` [T, H, W], with the run's
+    optical flow between consecutive frames of ``frames`` [T, H, W, 3] when there is any tool pixel."""
+    from endogsim.priors.flow import flow_estimator
+    from endogsim.priors.instances import split_tool_instances
+    from endogsim.priors.tracks import consecutive_flows
+
+    fwd = bwd = None
+    if len(frames) > 1 and np.isin(masks, [i for i, lab in labels.items() if lab.is_tool]).any():
+        fwd, bwd = consecutive_flows(frames, list(range(len(frames))), flow_estimator(config.flow, device))
+    return split_tool_instances(masks, labels, fwd, bwd)
+
+
 def prepare_scene(path: str | Path, config) -> PreparedScene:
     """Load ``path`` at ``config.resolution_scale`` and attach depth and segmentation priors.
 
@@ -153,7 +184,7 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
         path: dataset folder or video file.
         config: a :class:`~endogsim.recon.config.ReconConfig`.
     """
-    from endogsim.io.formats import load_scene
+    from endogsim.io.formats import detect_format, load_scene
     from endogsim.priors.depth import estimate_depth
     from endogsim.priors.segmentation import segment_scene
 
@@ -165,6 +196,10 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     dev = "cuda" if config.device == "cuda" else "cpu"
     dp = estimate_depth(scene, config.depth_method, config.depth_weights, dev, config.working_distance)
     seg = segment_scene(scene, config.seg_method, config.seg_checkpoint, config.seg_config, dev)
+    instances = None
+    if wants_tool_instances(config.tool_instances, seg.source, detect_format(path)):
+        instances = _split_instances(scene.frames, seg.masks, seg.labels, config, dev)
+        seg = replace(seg, masks=instances.masks, labels=instances.labels)
     scene = replace(scene, object_masks=seg.masks, labels=seg.labels)
     tool_ids = [i for i, lab in seg.labels.items() if lab.is_tool]
     tissue_ids = [i for i, lab in seg.labels.items() if not lab.is_tool and lab.klass != "background"]
@@ -175,4 +210,4 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     background_ids = [i for i, lab in seg.labels.items() if lab.klass == "background"]
     return PreparedScene(scene, dp.depth, dp.source, dp.metric, seg.source, tissue, tool, train, test,
                          video_times(scene.times, repeated), repeated,
-                         field_of_view(seg.masks, background_ids, train))
+                         field_of_view(seg.masks, background_ids, train), instances)

@@ -81,6 +81,7 @@ def export_run(tr: "Trainer") -> dict:
         "tissue_pixel_fraction": float(tr.prep.tissue[tr.prep.test].mean()) if tr.prep.test else None,
         "repeated_frames": [] if tr.prep.repeated is None else np.nonzero(tr.prep.repeated)[0].tolist(),
         "data_notes": list(sc.notes),
+        "tool_instances": None if tr.prep.instances is None else tr.prep.instances.summary(),
         "protocol": {"psnr_masked": "MSE over tissue pixels (tools, background, unlabelled excluded)",
                      "psnr_endonerf": "tool pixels zeroed in both images, MSE over the whole image",
                      "psnr_full": "tissue + tool models together vs the image, over tissue and tool pixels",
@@ -88,6 +89,9 @@ def export_run(tr: "Trainer") -> dict:
                      "repeated_frames": "frames showing the same instant as the one before (frame-rate "
                                         "conversion), found from the training frames; they share its time",
                      "track_source": "optical flow of the point tracks (training frames only)",
+                     "tool_instances": "the instruments the tool classes of the masks were split into (one "
+                                       "object each; gaps: frames where one is not seen, its pose there "
+                                       "interpolated between the frames around, held beyond the ends)",
                      "pose": "moving endoscope: each test frame's pose is the interpolation of its training "
                              "neighbours' poses registered to the test frame with the model frozen (BARF's "
                              "and NoPe-NeRF's test-time pose optimisation; pose_alignment gives each "

@@ -12,7 +12,9 @@
   *reference* frame), back-projected likewise; with non-metric depth it is placed at
   ``tool_depth_factor`` times the tissue depth (instruments are between the camera and the tissue).
   Per-frame translations start from the motion of the mask centroid, in-plane rotations from the change
-  of the mask's principal axis.
+  of the mask's principal axis; frames where the tool is not visible (it left the view, is occluded, or
+  the frame is held out) start from the interpolation of its visible neighbours, or the nearest visible
+  pose beyond them (:func:`~endogsim.recon.tools.fill_untrained_frames`): held, never extrapolated.
 
 Every Gaussian gets the object id of its pixel. Spacing: a Gaussian's standard deviation is ``scale``
 (default 0.6) times the back-projected grid spacing, so neighbours overlap and the first render has no
@@ -29,7 +31,7 @@ import numpy as np
 import torch
 
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
-from endogsim.recon.tools import axis_angle_to_quat
+from endogsim.recon.tools import axis_angle_to_quat, fill_untrained_frames
 
 __all__ = ["backproject", "InitResult", "initial_gaussians"]
 
@@ -194,10 +196,12 @@ def initial_gaussians(prep, stride: int = 2, opacity: float = 0.7, sh_degree: in
             rot[k, t, 2] = da  # about the optical axis (image-plane rotation)
             visible[k, t] = True
     nk = len(tool_ids)
+    trans, rot, visible = trans[:nk], rot[:nk], visible[:nk]
+    fill_untrained_frames([trans, rot], visible)
     if tools:
         tool_g = Gaussians.concat(tools)
     else:
         tool_g = _gaussians(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,), np.int64), np.zeros((0,)), opacity, sh_degree)
     return InitResult(tissue, tool_g, tool_ids,
                       torch.as_tensor(np.array(centers).reshape(nk, 3), dtype=torch.float32), refs,
-                      trans[:nk], rot[:nk], visible[:nk], n_dis, cat[4], tissue_frames)
+                      trans, rot, visible, n_dis, cat[4], tissue_frames)

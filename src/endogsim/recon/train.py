@@ -18,9 +18,11 @@ Losses per iteration (frame t drawn from a shuffled list of training frames):
   are replaced by the target before SSIM, so they carry no gradient); with metric depth,
   ``lambda_depth`` * L1(depth / median depth); in the deformation stage the HexPlane regularisers and the
   track term (``lambda_track``, decaying: the photometric loss refines what the tracks start).
-* every ``tool_every`` iterations, the tool model: tools rendered alone and composited over the (detached)
-  tissue render, L1 on tool pixels, plus ``lambda_tool_alpha`` * |alpha - tool mask| over the image
-  (the tools must cover their mask and nothing else) and pose smoothness.
+* every ``tool_every`` iterations, the tool model: the tools visible in frame t rendered alone and
+  composited over the (detached) tissue render, L1 on tool pixels, plus ``lambda_tool_alpha`` *
+  |alpha - tool mask| over the image (the tools must cover their mask and nothing else) and pose
+  smoothness. A tool out of view or occluded in frame t is not rendered there: its pose at t follows only
+  the smoothness term, and the export fills it from its visible neighbours (held beyond the first and last).
 
 The tissue model never sees tool pixels, so instruments leave no smear in the tissue.
 
@@ -50,6 +52,7 @@ import torch
 from endogsim.errors import DataError
 from endogsim.evaluate.image_metrics import masked_l1, ssim_map
 from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.model import Gaussians
 from endogsim.gaussians.render import render_gaussians
 from endogsim.io.atomic import save_torch_atomic, write_json_atomic
 from endogsim.io.runfolder import PROVENANCE, check_provenance, load_torch_file, provenance, run_folder
@@ -417,7 +420,7 @@ class Trainer:
         info = {"loss": float(loss.detach()), "frame": t, "n": len(self.tissue)}
 
         if self.tools is not None and self.iteration % c.tool_every == 0 and self.tool_visible[:, t].any():
-            tg = self.motion.apply(self.tools.gaussians(), t)
+            tg = self.motion.apply(self._tools_visible_at(t), t)
             tout = render_gaussians(tg, self.view(t), backend=c.backend)
             tm = self.tool_mask[t]
             comp = self.expose(tout.rgb + (1 - tout.alpha)[..., None] * out.rgb.detach(), t)
@@ -448,6 +451,17 @@ class Trainer:
                 c.densify_grad_threshold, c.percent_dense, self.extent, c.prune_opacity, cap, self.gen)
         self.iteration = it
         return info
+
+    def _tools_visible_at(self, frame: int) -> Gaussians:
+        """The canonical Gaussians of the tools visible in training frame ``frame`` (``tool_visible``): one
+        that left the view or is occluded there is not rendered, so it neither covers the other tools'
+        pixels nor gets a gradient pushing it out of the picture."""
+        g = self.tools.gaussians()
+        visible = self.tool_visible[:, frame]
+        if bool(visible.all()):
+            return g
+        ids = [oid for oid, v in zip(self.motion.tool_ids, visible.tolist()) if v]
+        return g.subset(torch.isin(g.object_ids, torch.as_tensor(ids, device=g.object_ids.device)))
 
     def _accumulate_view_gradient(self, g, out, means2d) -> None:
         """Densification statistics: the view-space gradient of every Gaussian's projected centre.
