@@ -118,9 +118,17 @@ def test_ground_truth_flow_explains_the_image_motion(tiny):
 def test_deterministic_for_a_seed(tmp_path, tiny):
     a = synthesize("tiny", tmp_path / "a", seed=0, frames=TINY_FRAMES)
     c = synthesize("tiny", tmp_path / "c", seed=1, frames=2)
+    # Same seed, same scene up to float rounding: PyTorch's vectorised CPU reductions may sum in a different
+    # order depending on the memory alignment of a buffer, which moves a few 8-bit pixels by one level
+    # (seen in about 1 run in 8, also before the v2 generator). Anything more is a real difference.
+    assert np.array_equal(np.load(a / "particles_ground_truth.npz")["x"], np.load(tiny / "particles_ground_truth.npz")["x"])
     for name in ("images/frame-000002.color.png", "depth/frame-000002.depth.png", "object_masks/frame-000002.png"):
-        assert (a / name).read_bytes() == (tiny / name).read_bytes(), name
-    assert np.array_equal(np.load(a / "flow/frame-000001.flow.npy"), np.load(tiny / "flow/frame-000001.flow.npy"))
+        x, y = (_read(d / name, -1).astype(np.int64) for d in (a, tiny))
+        assert (x != y).mean() < 1e-3, name
+        if "object_masks" not in name:
+            assert np.abs(x - y).max() <= 1, name
+    fa, fb = (np.load(d / "flow/frame-000001.flow.npy") for d in (a, tiny))
+    assert np.abs(fa - fb).max() < 1e-3  # pixels
     assert (a / "images/frame-000000.color.png").read_bytes() != (c / "images/frame-000000.color.png").read_bytes()
 
 
@@ -143,18 +151,22 @@ def test_bad_names_and_options_are_clear_errors(tmp_path):
 
 @pytest.mark.parametrize("name", suite_scene_names())
 def test_every_suite_scene_builds_within_stability_limits(name):
+    from endogsim.synth.generate import ground_truth_problem
+
     b = build_procedural(name, seed=0, frames=4, scale=0.25)
-    soft = [o for o in b.objects if not o.rigid]
-    assert soft and all(500 <= o.E <= 20000 for o in soft)  # in-vivo kPa regime, Pa units
+    assert any(not o.rigid for o in b.objects)
     assert b.identification.cfl < 0.5 and b.ground_truth.cfl < 0.5
+    # The ground truth is finer than identification: grid and substeps (DESIGN 10: a ground truth at the
+    # fitted discretisation would hide the discretisation error).
+    assert b.ground_truth.grid > b.identification.grid and b.ground_truth.substeps >= b.identification.substeps
+    filled, materials, scenario, config = ground_truth_problem(b)
+    x = filled.particles.x.numpy()
     dx = b.box_size / b.ground_truth.grid
-    inside = (b.particles > b.box_lo + 2 * dx) & (b.particles < b.box_lo + b.box_size - 2 * dx)
+    inside = (x > b.box_lo + 2 * dx) & (x < b.box_lo + b.box_size - 2 * dx)
     assert inside.all()
-    assert b.anchored.any() and not b.anchored.all()
+    assert scenario.anchors  # held somewhere (back face, outline), but not everywhere
+    assert not filled.pinned.all()
     assert len(b.tools) == 1 and b.tools[0].matrices().shape == (4, 4, 4)
-    # The ground truth is at least as fine as identification (by default the same, as in the paper: at about
-    # one particle per cell a finer ground truth measures the simulator's discretisation error).
-    assert b.ground_truth.grid >= b.identification.grid and b.ground_truth.substeps >= b.identification.substeps
 
 
 def test_suite_materials_lie_in_the_priors_in_vivo_range():
@@ -188,9 +200,12 @@ def test_from_real_data_folders(tmp_path):
         truth = load_scene_spec(out)
         assert truth.source == str(src)
         assert any(o.rigid for o in truth.objects) and any(not o.rigid for o in truth.objects)
-        for o in truth.deformable:
-            assert 300 <= o.E <= 20000 and 0.3 <= o.nu <= 0.45
-        assert truth.scenario.identification.cfl <= 0.46
+        from endogsim.materials.prior import prior_entry
+
+        for o in truth.deformable:  # the class's in-vivo prior, perturbed by at most 1.5x
+            E_prior = prior_entry(o.klass, False)[1]["in_vivo"]["E"]
+            assert E_prior / 1.5 <= o.E <= E_prior * 1.5 and 0.3 <= o.nu <= 0.45
+        assert truth.scenario.identification.cfl <= 0.5 and truth.scenario.ground_truth.cfl <= 0.5
         assert len(list((out / "images").glob("*.png"))) == 3
         done += 1
         if name == "cholecseg8k_clip":

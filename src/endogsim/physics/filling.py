@@ -135,7 +135,8 @@ def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thick
             cell-centred on a grid of spacing through the world origin.
         closing_cells: holes in the footprint up to about this many image-plane cells are closed.
     Returns:
-        the :class:`FilledSolid` and the :class:`SurfaceMap` it was filled behind.
+        the :class:`FilledSolid` (empty when no lattice point lies in the slab: a surface smaller than about
+        the spacing) and the :class:`SurfaceMap` it was filled behind.
     """
     if not (thickness > 0 and spacing > 0):
         raise SimulationError(f"thickness {thickness} m and spacing {spacing} m must be > 0")
@@ -168,6 +169,6 @@ def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thick
             out_x.append(g[keep])
             out_d.append(depth[keep])
             out_e.append(edge[keep])
-    if not out_x:
-        raise SimulationError("no lattice point falls inside the slab behind the surface (spacing too coarse?)")
+    if not out_x:  # a surface smaller than the lattice spacing
+        return FilledSolid(np.zeros((0, 3)), np.zeros(0), np.zeros(0), float(spacing)), smap
     return FilledSolid(np.concatenate(out_x), np.concatenate(out_d), np.concatenate(out_e), float(spacing)), smap

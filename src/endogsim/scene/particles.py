@@ -17,12 +17,13 @@ Units: metres, world coordinates.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, DataWarning
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.physics import Anchor, ExternalForce, Particles
@@ -134,9 +135,14 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
         if thickness <= 0:
             raise DataError(f"scene {spec.name!r}: object {name!r} has no thickness behind its surface "
                             "(scenario.extrusion.thickness)")
-        if len(pts) < 3:
-            raise DataError(f"scene {spec.name!r}: object {name!r} has {len(pts)} surface samples to fill")
-        solid, smap = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
+        solid = None
+        if len(pts) >= 3:
+            solid, smap = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
+        if solid is None or len(solid) == 0:  # a sliver of segmentation: nothing to simulate
+            warnings.warn(f"scene {spec.name!r}: object {name!r} ({len(pts)} surface samples) is smaller than "
+                          f"one particle at {spacing * 1e3:.2f} mm spacing; it is not simulated (its Gaussians "
+                          "stay in place)", DataWarning, stacklevel=2)
+            continue
         slab = SlabConditions(smap, thickness, sc.boundary(name))
         pin = slab.border(solid.x)
         if slab.boundary.back_face == "fixed":  # the deepest lattice layer is glued to the anatomy behind
@@ -148,7 +154,8 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
         pinned.append(pin)
         slabs[int(oid)] = slab
     if not parts:
-        raise DataError(f"scene {spec.name!r}: no deformable object to fill with particles")
+        raise DataError(f"scene {spec.name!r}: no deformable object large enough to fill with particles "
+                        f"(spacing {spacing * 1e3:.2f} mm)")
     return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs)
 
 

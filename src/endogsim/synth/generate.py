@@ -107,6 +107,7 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
     frame (frame 0: the equilibrium after settling), and the ground truth's particles.
     """
     filled, materials, scenario, config = ground_truth_problem(b)
+    check_size(particles=len(filled.particles))
     res = simulate(filled.particles, materials, scenario, config, b.frames)
     if res.substeps != b.ground_truth.substeps:  # plan_substeps saw the same inputs when the scene was built
         raise SimulationError(f"scene {b.name}: the simulator took {res.substeps} substeps per frame, "
@@ -256,7 +257,7 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         b = build_from_data(from_dir, name=scene_name, seed=seed, frames=frames, scale=scale, **from_kwargs)
     else:
         b = build_procedural(scene_name, seed=seed, frames=frames, scale=1.0 if scale is None else scale)
-    check_size(b.frames, b.camera.width, b.camera.height, len(b.particles))
+    check_size(b.frames, b.camera.width, b.camera.height)
     if progress is not None:
         progress("simulate", 0, 1)
     tx, tcov, particles = simulate_built(b)
