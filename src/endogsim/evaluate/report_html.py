@@ -141,14 +141,35 @@ def _fid_cell(observed: np.ndarray | None, simulated: np.ndarray | None, fid_wei
         return "n/a", f"FID: n/a ({exc})"
 
 
+def _validation_section(folder: Path, rel) -> list[str]:
+    """The held-out comparison of an ``endogsim validate`` folder (validate.json, heldout_*.png)."""
+    v = _load_json(folder / "validate.json")
+    if v is None:
+        raise DataError(f"{folder}: no validate.json (not an `endogsim validate` output folder)")
+    rows = [["prediction (calibrated)", v["prediction"]["epe"], v["prediction"]["psnr_masked"]]]
+    rows += [[name, b["epe"], b["psnr_masked"]] for name, b in v["baselines"].items()]
+    out = [f'<h2>Held-out validation</h2><p class="note">calibrated on frames 0..{v["train_frames"] - 1}, '
+           f"predicted frames {v['train_frames']}..{v['train_frames'] + v['test_frames'] - 1} from the calibrated "
+           "state with the tracked instrument motion; EPE over tissue pixels against the observed flow of the "
+           "held-out frames, PSNR over their tissue pixels. The reconstruction is an upper bound, not a baseline "
+           "to beat.</p>", _table(["", "EPE (px)", "masked PSNR (dB)"], rows)]
+    stills = sorted(folder.glob("heldout_*.png"))
+    if stills:
+        out.append('<p class="note">observed | predicted | flow error |U_pred - U_obs| (inferno, 0..1 px)</p>')
+        out.append("".join(f'<figure><img alt="{_e(p.stem)}" src="{_file_data_uri(p)}"><figcaption>{_e(p.stem)}'
+                           "</figcaption></figure>" for p in stills))
+    return out
+
+
 def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike] | tuple = (),
                  out: str | os.PathLike | None = None, fid_weights: str | os.PathLike | None = None,
-                 title: str | None = None) -> Path:
+                 title: str | None = None, validation: str | os.PathLike | None = None) -> Path:
     """Write the HTML report of a run folder; returns its path (default ``run_dir/report.html``).
 
     Args:
         run_dir: an ``endogsim identify`` run folder (metrics.json required).
         simulations: ``endogsim simulate`` output folders to show (summary.json, simulation.mp4).
+        validation: an ``endogsim validate`` output folder whose held-out comparison to show.
         out: the HTML file to write; linked files are referenced relative to its folder.
         fid_weights: local Inception-v3 weights for FID (else FID is "n/a" with the reason).
         title: page title (default from the scene name).
@@ -219,6 +240,32 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
     parts.append("<h2>Material field</h2>" + _table(cols, rows, left=4))
     parts.append('<p class="note">E in Pa, density in kg/m^3; the range is the prior\'s plausible E interval '
                  "(from the initialiser); RE = mean relative error of E, nu, G, K against the ground truth.</p>")
+
+    # What the video determines.
+    ident = metrics.get("identifiable") or {}
+    if ident:
+        irows = []
+        for obj, params in ident.items():
+            for par, v in params.items():
+                unit = " Pa" if par == "E" else ""
+                lo, hi = v["interval"]
+                irows.append([obj, par, f"{v['best']:.4g}{unit}", f"[{lo:.4g}, {hi:.4g}]{unit}",
+                              "yes" if v["identifiable"] else "NO", v["reason"]])
+        parts.append("<h2>Identifiability</h2>" + _table(
+            ["object", "parameter", "identified", "90% interval", "identifiable", "evidence"], irows, left=6))
+        parts.append('<p class="note">A parameter the video does not determine (its loss changes by less than the '
+                     "loss's own frame-to-frame noise across the search box, or its gradient was zero) keeps its "
+                     'initial value, labelled "prior (not identifiable from this video)".</p>')
+    cov = metrics.get("coverage")
+    if isinstance(cov, dict) and cov.get("worst"):
+        w = cov["worst"]
+        where = f" (object id {w['object_id']}, frame {w['frame']})" if w.get("object_id") is not None and w["drop"] else ""
+        parts.append(f"<h2>Tissue coverage</h2><p>largest drop of the rendered tissue coverage: "
+                     f"{100 * w['drop']:.2f}% of the footprint{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
+                     "drop means the simulated tissue tore, and the run fails)</p>")
+
+    if validation is not None:
+        parts += _validation_section(Path(validation), rel)
 
     # Metrics.
     fid_value, fid_note = _fid_cell(observed, simulated, fid_weights)

@@ -9,7 +9,7 @@ from endogsim.errors import MaterialError
 from endogsim.physics.modes import GRAD_MODES, GradMode
 from endogsim.priors.flow import FlowConfig
 
-LossKind = Literal["joint", "render", "flow"]
+LossKind = Literal["joint_track", "joint", "render", "flow", "track"]
 LOSSES: tuple[str, ...] = get_args(LossKind)
 
 
@@ -18,8 +18,11 @@ class IdentifyConfig:
     """How identification runs.
 
     Attributes:
-        loss: "joint" (the paper's L = render + lambda * flow), "render" (appearance only) or "flow" (motion only).
+        loss: "joint_track" (the paper's joint loss plus the track term; on a scene without tracks the same
+            as "joint"), "joint" (the paper's L = render + lambda * flow), "render" (appearance only), "flow"
+            (motion only) or "track" (the reconstruction's tissue trajectories only).
         flow_weight: lambda, the weight of the flow term (paper: 0.1).
+        track_weight: mu, the weight of the track term (pixels^2, like the flow term).
         loss_terms: explicit {term: weight} over the registered loss terms
             (:data:`endogsim.identify.loss.LOSS_TERMS`), replacing the ``loss`` preset when given.
         grad_mode: gradient through the simulator: "last_substep" (paper), "frame" or "full"
@@ -65,8 +68,9 @@ class IdentifyConfig:
         device: "cpu" or "cuda" for the simulator and renderer.
     """
 
-    loss: LossKind = "joint"
+    loss: LossKind = "joint_track"
     flow_weight: float = 0.1
+    track_weight: float = 0.1
     loss_terms: dict[str, float] | None = None
     grad_mode: GradMode = "full"
     iters: int = 30
@@ -111,8 +115,8 @@ class IdentifyConfig:
             raise MaterialError(f"time_budget = {self.time_budget} s must be > 0 (or None)")
         if self.frame_stride < 1:
             raise MaterialError(f"frame_stride = {self.frame_stride} must be >= 1")
-        if self.flow_weight < 0:
-            raise MaterialError(f"flow_weight = {self.flow_weight} must be >= 0")
+        if self.flow_weight < 0 or self.track_weight < 0:
+            raise MaterialError(f"flow_weight = {self.flow_weight}, track_weight = {self.track_weight} must be >= 0")
         self.nu_bounds = (float(self.nu_bounds[0]), float(self.nu_bounds[1]))
         if isinstance(self.flow, dict):
             self.flow = FlowConfig(**self.flow)
@@ -128,8 +132,9 @@ class IdentifyConfig:
         """{loss term: weight} of this run: ``loss_terms``, or the ``loss`` preset with ``flow_weight``."""
         if self.loss_terms is not None:
             return dict(self.loss_terms)
-        return {"joint": {"render": 1.0, "flow": self.flow_weight}, "render": {"render": 1.0},
-                "flow": {"flow": self.flow_weight}}[self.loss]
+        return {"joint_track": {"render": 1.0, "flow": self.flow_weight, "track": self.track_weight},
+                "joint": {"render": 1.0, "flow": self.flow_weight}, "render": {"render": 1.0},
+                "flow": {"flow": self.flow_weight}, "track": {"track": self.track_weight}}[self.loss]
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

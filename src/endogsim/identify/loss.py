@@ -1,8 +1,9 @@
 """The identification loss (DESIGN.md section 7) and the observations it compares against.
 
     L = sum_t ||I_t - I^_t||^2 + lambda sum_t ||U(I_t, I_t+1) - U^_t||^2        (lambda = 0.1)
+        [+ mu sum_t mean_n |x^_tn - x_tn|^2]                                       (scenes with tracks)
 
-Each term is registered by name in :data:`LOSS_TERMS` ("render", "flow"); the configuration gives the
+Each term is registered by name in :data:`LOSS_TERMS` ("render", "flow", "track"); the configuration gives the
 weights (:meth:`endogsim.identify.IdentifyConfig.term_weights`), and the parts come back by name, so the
 history, plots and tables list whatever terms a run used.
 
@@ -13,6 +14,11 @@ cached in the run folder); U^_t the Gaussian flow of the simulated Gaussians. Fr
 shared by every simulation, so its render term is a constant and is left out. With a frame stride k
 (:class:`~endogsim.identify.IdentifyConfig`) the sums run over t = 0, k, 2k, ... only: the simulation still
 covers every frame, but rendering, the costliest part on a CPU, shrinks k-fold.
+
+The track term compares the projections x^_tn of tracked tissue Gaussians moved by the simulation with
+the projections x_tn of the same Gaussians moved by the 4D reconstruction (:mod:`endogsim.scene.tracks`):
+the reconstruction's estimate of the tissue motion, fitted to every frame, which carries the motion signal
+that the render term buries under the reconstruction's own render residual.
 
 Valid pixels: those of deformable objects in the observed object masks (tools and background excluded;
 the flow term needs the pixel on tissue at both t and t+1). Without masks: every pixel.
@@ -49,12 +55,17 @@ class Observations:
         flow: [T-1, H, W, 2] estimated observed flow t -> t+1 (pixels at this resolution).
         valid_rgb: [T, H, W] bool pixels counted by the render term.
         valid_flow: [T-1, H, W] bool pixels counted by the flow term.
+        tracks: [T, N, 2] pixel positions (this resolution) of the reconstruction's tracked tissue Gaussians
+            (:mod:`endogsim.scene.tracks`) or None.
+        valid_tracks: [T, N] bool: the track lies on a tissue pixel of that frame (in view, not behind a tool).
     """
 
     frames: torch.Tensor
     flow: torch.Tensor
     valid_rgb: torch.Tensor
     valid_flow: torch.Tensor
+    tracks: torch.Tensor | None = None
+    valid_tracks: torch.Tensor | None = None
 
 
 def _frames_key(frames: np.ndarray, estimator: str) -> str:
@@ -88,12 +99,14 @@ def observed_flow(frames: np.ndarray, flow: FlowConfig = FlowConfig("dis_fine"),
 
 
 def make_observations(frames: np.ndarray, flow: np.ndarray, object_masks: np.ndarray | None,
-                      deformable_ids: list[int], size: tuple[int, int]) -> Observations:
+                      deformable_ids: list[int], size: tuple[int, int],
+                      tracks: np.ndarray | torch.Tensor | None = None) -> Observations:
     """Observations at the rendering size ``size`` = (W, H).
 
     Args:
         frames: [T, H0, W0, 3] observed RGB in [0, 1]. flow: [T-1, H0, W0, 2] pixels (full resolution).
         object_masks: [T, H0, W0] object ids or None. deformable_ids: ids whose pixels count.
+        tracks: [T, N, 2] pixel positions at the rendering size of the tracked tissue Gaussians, or None.
     """
     W, H = size
     scale = W / frames.shape[2]
@@ -104,8 +117,16 @@ def make_observations(frames: np.ndarray, flow: np.ndarray, object_masks: np.nda
         tissue = resize_frames(tissue, size, nearest=True).astype(bool)
     else:
         tissue = np.ones(fr.shape[:3], bool)
+    tr = valid_tr = None
+    if tracks is not None:
+        tr = torch.as_tensor(tracks, dtype=torch.float32).detach()
+        ij = tr.floor().long()
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < W) & (ij[..., 1] >= 0) & (ij[..., 1] < H)
+        t_idx = torch.arange(tr.shape[0])[:, None].expand(ij.shape[:2])
+        on = torch.from_numpy(tissue)[t_idx, ij[..., 1].clamp(0, H - 1), ij[..., 0].clamp(0, W - 1)]
+        valid_tr = inside & on
     return Observations(torch.from_numpy(fr), torch.from_numpy(fl), torch.from_numpy(tissue),
-                        torch.from_numpy(tissue[:-1] & tissue[1:]))
+                        torch.from_numpy(tissue[:-1] & tissue[1:]), tr, valid_tr)
 
 
 def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -134,6 +155,20 @@ def flow_term(rendered: Rendered, obs: Observations) -> tuple[list[int], torch.T
     """||U(I_t, I_t+1) - U^_t||^2 per rendered frame t < T - 1 (pixels^2)."""
     idx = torch.as_tensor(rendered.frames, dtype=torch.long)[: rendered.flow.shape[0]]
     return idx.tolist(), _masked_mean((rendered.flow - obs.flow[idx]).square().sum(-1), obs.valid_flow[idx])
+
+
+@LOSS_TERMS.register("track")
+def track_term(rendered: Rendered, obs: Observations) -> tuple[list[int], torch.Tensor]:
+    """|x^_t - x_t|^2 per rendered frame t > 0 (pixels^2), mean over the tracks valid at t: the simulated
+    Gaussians' projections against the reconstruction's trajectories of the same Gaussians. No frames when
+    the scene has no tracks."""
+    if rendered.tracks is None or obs.tracks is None:
+        return [], torch.zeros(0, dtype=torch.float64)
+    idx = torch.as_tensor(rendered.frames, dtype=torch.long)
+    sel = idx > 0
+    err = (rendered.tracks[sel] - obs.tracks[idx[sel]]).square().sum(-1)  # [K, N]
+    m = obs.valid_tracks[idx[sel]].to(err.dtype)
+    return idx[sel].tolist(), (err * m).sum(1) / m.sum(1).clamp_min(1.0)
 
 
 @dataclass

@@ -26,20 +26,21 @@ from pathlib import Path
 import torch
 
 from endogsim.errors import DataError, IdentificationError, SimulationError
+from endogsim.gaussians.camera import Camera
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import (
-    Observations,
     LossValue,
+    Observations,
     identification_loss,
     make_observations,
     observed_flow,
 )
-from endogsim.io.atomic import save_torch_atomic
 from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
+from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord
 from endogsim.physics import max_stable_E
 from endogsim.scene.folder import SimScene
-from endogsim.scene.forward import render_sequence, simulate_materials
+from endogsim.scene.forward import in_view, render_sequence, simulate_materials
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
@@ -179,7 +180,14 @@ def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Pat
     cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
     U = observed_flow(problem.frames, config.flow, cache)
     cam = problem.camera if config.render_scale == 1 else problem.camera.scaled(config.render_scale)
-    obs = make_observations(problem.frames, U, problem.object_masks, problem.deformable_ids, (cam.width, cam.height))
+    tracks = None
+    if problem.tracks is not None:  # the reconstruction's trajectories as camera t saw them
+        view = Camera(cam.K, cam.width, cam.height) if problem.viewmats is not None else cam
+        pos = problem.tracks.positions
+        tracks = torch.stack([view.project(in_view(problem, pos[t], None, t)[0])
+                              for t in range(problem.num_frames)])
+    obs = make_observations(problem.frames, U, problem.object_masks, problem.deformable_ids, (cam.width, cam.height),
+                            tracks)
     return obs, cam
 
 

@@ -33,6 +33,7 @@ from endogsim.identify.optimize import IdentifyResult
 from endogsim.identify.uncertainty import ParameterInterval
 from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.materials.field import MaterialField
+from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import render_sequence
 
@@ -47,9 +48,12 @@ class Evaluation:
 
     Attributes:
         rgb: [T, H, W, 3] simulated frames; flow: [T-1, H, W, 2] Gaussian flow (pixels).
-        epe: mean end-point error (px) against the ground-truth flow (NaN without it).
+        epe: mean end-point error (px) over tissue pixels against the reference flow: the ground truth when
+            the scene has it, else the observed flow estimate (``epe_reference`` says which); NaN with neither.
         psnr, ssim: simulated vs observed frames (all frames, whole image).
-        flow_error: [T-1, H, W] |flow - reference| (px), reference = ground truth or observed estimate.
+        flow_error: [T-1, H, W] |flow - reference| (px).
+        coverage: the tissue's rendered coverage per frame (:mod:`endogsim.scene.coverage`).
+        epe_reference: "ground truth", "observed flow" or "none".
     """
 
     rgb: np.ndarray
@@ -58,6 +62,8 @@ class Evaluation:
     psnr: float
     ssim: float
     flow_error: np.ndarray
+    coverage: Coverage
+    epe_reference: str = "ground truth"
 
 
 def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
@@ -65,19 +71,26 @@ def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndar
     with torch.no_grad():
         res = problem.simulator().simulate(fld.simulator_materials())
         r = render_sequence(problem, res.positions, res.F, problem.camera)
+        cov = tissue_coverage(problem, res.positions, res.F, problem.camera.scaled(0.5))
     rgb = r.rgb.clamp(0, 1).numpy()
     flow = r.flow.numpy()
     obs = problem.frames
     p = psnr(torch.from_numpy(rgb), torch.from_numpy(obs))
     s = ssim(torch.from_numpy(rgb), torch.from_numpy(obs))
+    tissue = None
+    if problem.object_masks is not None:
+        on = np.isin(problem.object_masks, problem.deformable_ids)
+        tissue = on[:-1] & on[1:]
     if problem.gt_flow is not None:
-        e = epe_metric(flow, problem.gt_flow, problem.gt_flow_valid)
-        ref = problem.gt_flow
+        ref, src = problem.gt_flow, "ground truth"
+        valid = problem.gt_flow_valid if tissue is None else problem.gt_flow_valid & tissue
+    elif observed_flow is not None:
+        ref, src, valid = observed_flow, "observed flow", tissue
     else:
-        e = math.nan
-        ref = observed_flow if observed_flow is not None else np.zeros_like(flow)
-    err = np.linalg.norm(flow - ref, axis=-1)
-    return Evaluation(rgb, flow, float(e), float(p), float(s), err)
+        ref, src, valid = None, "none", None
+    e = math.nan if ref is None else epe_metric(flow, ref, valid)
+    err = np.linalg.norm(flow - (np.zeros_like(flow) if ref is None else ref), axis=-1)
+    return Evaluation(rgb, flow, float(e), float(p), float(s), err, cov, src)
 
 
 def material_errors(problem: SimScene, fld: MaterialField) -> dict | None:
@@ -147,7 +160,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "seconds": result.seconds,
-        "epe": ev.epe, "psnr": ev.psnr, "ssim": ev.ssim,
+        "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
+        "coverage": ev.coverage.to_json(),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
                       for r in result.field.records},
@@ -190,7 +204,11 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; "
                      f"mean {re['re_mean']:.3f}; |E/E_true - 1| mean {re['e_rel_error_mean']:.3f}, "
                      f"median {re['e_rel_error_median']:.3f}")
-    lines.append(f"EPE {ev.epe:.3f} px, PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
+    lines.append(f"EPE {ev.epe:.3f} px (against the {ev.epe_reference}), PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
+    oid, frame, drop = ev.coverage.worst()
+    lines.append(f"tissue coverage: largest drop {100 * drop:.2f}% of the footprint"
+                 + (f" ({problem.spec.object(oid).name}, frame {frame})" if oid is not None and drop > 0 else ""))
     lines += [f"note: {n}" for n in result.notes]
     write_text_atomic(run / "summary.txt", "\n".join(lines) + "\n")
+    check_coverage(ev.coverage, problem)  # after writing: the run folder shows the tear
     return metrics

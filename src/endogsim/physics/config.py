@@ -222,6 +222,12 @@ class Scenario:
             already-loaded frame 0 does not sag twice).
         settle_damping: grid velocity damping (1/s) while settling, or None for ``MPMConfig.damping``. The
             equilibrium does not depend on it; a strong one reaches it in fewer frames.
+        mass_scaling: k >= 1, quasi-static mass scaling (as in explicit FEM codes): the simulator multiplies
+            every density by k and divides gravity, body accelerations and the grid damping by k, so weight,
+            body forces and damping forces are unchanged and only inertia grows k-fold. The wave speed, and
+            with it the CFL substep count, drops by sqrt(k). Valid when the motion is quasi-static (strongly
+            damped tissue driven slowly by tools); check with a rollout at k = 1. Impulses (a dynamic drive)
+            refuse it.
     """
 
     box: SimBox
@@ -232,8 +238,14 @@ class Scenario:
     settle_frames: int = 0
     settle: Literal["keep", "subtract"] = "subtract"
     settle_damping: float | None = None
+    mass_scaling: float = 1.0
 
     def __post_init__(self) -> None:
+        if not self.mass_scaling >= 1.0:
+            raise SimulationError(f"Scenario.mass_scaling = {self.mass_scaling} must be >= 1")
+        if self.mass_scaling != 1.0 and any(f.impulse for f in self.forces):
+            raise SimulationError("mass scaling changes what an impulse does: a scenario with impulses needs "
+                                  "mass_scaling = 1")
         if self.settle_frames < 0:
             raise SimulationError(f"Scenario.settle_frames = {self.settle_frames} must be >= 0")
         if self.settle_damping is not None and not self.settle_damping >= 0:
@@ -253,6 +265,17 @@ class Scenario:
             colliders.append(RigidCollider(positions=torch.cat([traj[:1].expand(S, -1, -1), traj]), radius=c.radius))
         forces = [replace(f, t_start=f.t_start + shift, t_end=f.t_end + shift) for f in self.forces]
         return replace(self, colliders=colliders, forces=forces, settle_frames=0, settle_damping=None)
+
+    def mass_scaled(self) -> "Scenario":
+        """The world the simulator runs with ``mass_scaling`` = k applied: gravity, body accelerations and
+        settling damping divided by k (densities and ``MPMConfig.damping`` are scaled by the simulator)."""
+        k = self.mass_scaling
+        if k == 1.0:
+            return self
+        return replace(self, gravity=tuple(g / k for g in self.gravity),
+                       forces=[replace(f, acceleration=tuple(a / k for a in f.acceleration)) for f in self.forces],
+                       settle_damping=None if self.settle_damping is None else self.settle_damping / k,
+                       mass_scaling=1.0)
 
     def damping_of_frame(self, frame: int, damping: float) -> float:
         """The grid damping (1/s) of output frame ``frame`` of the settled rollout (settle frames first)."""

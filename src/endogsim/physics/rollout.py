@@ -25,7 +25,7 @@ The substep count of every rollout follows the CFL rule for its materials (:mod:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -146,6 +146,11 @@ class Simulator:
             raise SimulationError(f"num_frames = {num_frames} must be >= 1")
         if len(particles) == 0:
             raise SimulationError("no particles to simulate")
+        # Quasi-static mass scaling (Scenario.mass_scaling): the engine sees the scaled world; densities are
+        # scaled per rollout (they may carry gradients).
+        self.mass_scaling = float(scenario.mass_scaling)
+        scenario = scenario.mass_scaled()
+        config = replace(config, damping=config.damping / self.mass_scaling)
         self.particles, self.scenario, self.config, self.num_frames = particles, scenario, config, num_frames
         self._engine: MPMEngine | None = None
         self._collider_speed = 0.0
@@ -179,9 +184,15 @@ class Simulator:
         F_rest_inv = torch.linalg.inv(Fs[S].double()).to(Fs.dtype)
         return xs[S:] - sag, Fs[S:] @ F_rest_inv
 
+    def _scaled(self, materials: ObjectMaterials) -> ObjectMaterials:
+        """``materials`` with the densities times the mass scaling (differentiable)."""
+        if self.mass_scaling == 1.0:
+            return materials
+        return replace(materials, density=materials.density * self.mass_scaling)
+
     def timestep(self, materials: ObjectMaterials, v0: torch.Tensor | None = None) -> Timestep:
         """The CFL-respecting substeps for these materials (checked: impossible values are refused)."""
-        used = materials.used(self.particles.object_ids)
+        used = self._scaled(materials).used(self.particles.object_ids)
         check_materials(used.E.numpy(), used.nu.numpy(), used.density.numpy(), where="object")
         speed = self._collider_speed
         if v0 is not None and len(v0):
@@ -203,6 +214,7 @@ class Simulator:
         x0 = p.x if x0 is None else x0
         v0 = (p.v if p.v is not None else torch.zeros_like(x0)) if v0 is None else v0
         step = self.timestep(materials, v0)
+        materials = self._scaled(materials)
         box = self.scenario.box
         x0_sim = box.to_sim(x0.to(torch.float64)).float()
         v0_sim = box.vec_to_sim(v0.to(torch.float64)).float()
@@ -219,6 +231,7 @@ class Simulator:
             x0 = p.x.detach()
             v0 = (p.v if p.v is not None else torch.zeros_like(x0)) if v0 is None else v0
             step = self.timestep(materials, v0)
+            materials = self._scaled(materials)
             mats = self.engine.material_table(box.modulus_to_sim(materials.E.double()), materials.nu,
                                               materials.density, *self._static(materials), grad=False)
             states, _ = self.engine.forward(box.to_sim(x0.double()).float().cpu(),

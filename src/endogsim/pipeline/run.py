@@ -30,6 +30,7 @@ from endogsim.errors import DataError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.io.atomic import write_json_atomic
 from endogsim.io.runfolder import json_digest, run_folder, tree_digest
+from endogsim.pipeline.scene_from_recon import RealScenario
 from endogsim.recon.config import ReconConfig
 
 #: Where identification's tool colliders get their motion: the reconstruction, or a ground truth (benchmark).
@@ -51,6 +52,8 @@ class PipelineConfig:
         materials_backend: initial materials: manual | prior | mllm | replay | a material JSON file.
         recon: the reconstruction stage's :class:`~endogsim.recon.config.ReconConfig`.
         identify: the identification stage's :class:`~endogsim.identify.IdentifyConfig`.
+        scenario: the scenario of a real video (thickness, anchors, gravity, damping, ...; unused with a
+            ground truth), :class:`~endogsim.pipeline.scene_from_recon.RealScenario`.
         interaction: the new interaction of the simulate stage (a built-in name or a JSON file); None skips it.
         tool_motion: tool collider motion for identification: "reconstructed" or "truth" (benchmark only).
         video: write videos (comparison, simulation).
@@ -59,6 +62,7 @@ class PipelineConfig:
     materials_backend: str = "prior"
     recon: ReconConfig = field(default_factory=ReconConfig)
     identify: IdentifyConfig = field(default_factory=IdentifyConfig)
+    scenario: RealScenario = field(default_factory=RealScenario)
     interaction: str | None = "poke"
     tool_motion: ToolMotion = "reconstructed"
     video: bool = True
@@ -68,6 +72,8 @@ class PipelineConfig:
             self.recon = ReconConfig.from_dict(self.recon)
         if isinstance(self.identify, dict):
             self.identify = IdentifyConfig.from_json(self.identify)
+        if isinstance(self.scenario, dict):
+            self.scenario = RealScenario(**{k: tuple(v) if isinstance(v, list) else v for k, v in self.scenario.items()})
         if self.tool_motion not in get_args(ToolMotion):
             raise DataError(f"tool_motion {self.tool_motion!r} must be 'reconstructed' or 'truth'")
 
@@ -119,7 +125,8 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
     state.update({"data": str(data), "truth": str(truth) if truth else None, "config": asdict(cfg)})
     # What each stage is made from besides the earlier stages' outputs (files by content digest).
     options = {"reconstruct": {"data": tree_digest(data, exclude=out), "recon": asdict(cfg.recon)},
-               "scenario": {"truth": None if truth is None else tree_digest(truth), "tool_motion": cfg.tool_motion},
+               "scenario": {"truth": None if truth is None else tree_digest(truth), "tool_motion": cfg.tool_motion,
+                            "scenario": asdict(cfg.scenario)},
                "identify": {"init": cfg.materials_backend, "init_file": tree_digest(cfg.materials_backend),
                             "identify": asdict(cfg.identify), "video": cfg.video},
                "simulate": {"interaction": cfg.interaction}, "report": {}}
@@ -156,7 +163,8 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
     def scenario_stage() -> dict:
         from endogsim.pipeline.scene_from_recon import scene_from_reconstruction
 
-        scene_from_reconstruction(out / "recon", data, out / "scene", truth=truth, tool_motion=cfg.tool_motion)
+        scene_from_reconstruction(out / "recon", data, out / "scene", truth=truth, tool_motion=cfg.tool_motion,
+                                  scenario=cfg.scenario)
         return {"scene": str(out / "scene")}
 
     def identify_stage() -> dict:

@@ -1,23 +1,31 @@
 """From a 4D reconstruction to a simulation-ready scene folder (the "Scenario" stage of DESIGN.md section 2).
 
-:func:`scene_from_reconstruction` writes a folder in the layout of ``endogsim synth`` (so ``endogsim identify``
-and ``endogsim simulate`` read it unchanged):
+:func:`scene_from_reconstruction` writes a folder in the layout of ``endogsim synth`` (so ``endogsim identify``,
+``endogsim simulate`` and ``endogsim validate`` read it unchanged):
 
   images/frame-%06d.color.png   the observed frames at the reconstruction's resolution
-  object_masks/frame-%06d.png   object id per pixel (when the data has masks)
+  object_masks/frame-%06d.png   object id per pixel (when the data has masks; one id per instrument)
   gaussians_t0.ply              the reconstructed Gaussians of frame 0, with object ids
-  scene.json                    objects, camera, and the scenario: sim box, boundary conditions, tool
-                                colliders (a capsule fitted to each tool's Gaussians, moved by the tool's
-                                reconstructed per-frame rigid transforms), discretisation
+  tracks.npz                    the reconstruction's trajectories of sampled tissue Gaussians
+                                (:mod:`endogsim.scene.tracks`, identification's track term)
+  scene.json                    objects, camera (per-frame viewmats when the endoscope moves), and the
+                                scenario: sim box, boundary conditions, one capsule collider per instrument
+                                moved by its reconstructed rigid motion, settling, discretisation
 
 Two ways to get the scenario:
   * ``truth`` given (the benchmark protocol, DESIGN.md section 8): the ground-truth scene's boundary settings
-    (sim box, anchors, extrusion, gravity, tool capsule shape) and its ground-truth materials and flow are
-    reused; the Gaussians come from the reconstruction, the tool motion from the reconstruction or (the
-    paper's "same boundary settings") from the ground truth.
-  * no ``truth`` (real video): everything is derived from the reconstruction with :class:`ScenarioDefaults`.
-    Gravity defaults to zero: frame 0 is observed at rest under unknown loads (insufflation, attachments),
-    so switching gravity on at t = 0 would make the tissue sag in a way the video never shows.
+    (sim box, anchors, thickness, gravity, tool capsule shape, discretisation) are reused; the Gaussians come
+    from the reconstruction, the tool motion from the reconstruction or (the paper's "same boundary
+    settings") from the ground truth.
+  * no ``truth`` (real video): everything comes from the reconstruction and :class:`RealScenario`, whose
+    docstring says where each choice comes from.
+
+Colliders on real video (:func:`instrument_colliders`): each instrument is its own object (the
+reconstruction splits tool masks into tracked instances), and its capsule is fitted to its grey metal core
+(low-saturation Gaussians: a fallback tool mask leaks onto reddish tissue, and those Gaussians would widen
+the capsule into the tissue). A monocular reconstruction places instruments a few millimetres off in
+depth, so a fitted capsule can start inside the tissue; it is then moved towards the camera along its
+viewing ray until no tissue particle lies inside it, with a warning giving the count and the distance.
 """
 
 from __future__ import annotations
@@ -25,44 +33,91 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from dataclasses import asdict, dataclass
+import warnings
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, DataWarning
 from endogsim.gaussians.model import Gaussians
 from endogsim.io.atomic import atomic_folder, write_json_atomic
 
-__all__ = ["ScenarioDefaults", "scene_from_reconstruction", "fit_tool_capsule"]
+__all__ = ["RealScenario", "ToolFit", "scene_from_reconstruction", "fit_tool_capsule", "instrument_colliders",
+           "push_out_of_tissue", "grey_core"]
 
 
 @dataclass(frozen=True)
-class ScenarioDefaults:
-    """Scenario of a real (no ground truth) reconstruction.
+class RealScenario:
+    """The scenario of a real video: what a video cannot measure, chosen once for all clips.
 
     Attributes:
-        thickness: extrusion of the visible tissue surface along the viewing rays (metres).
-        border: width of the anchored band along each tissue object's outline (metres).
+        thickness: tissue behind the visible surface (metres). A video sees only the front surface; 8 mm is
+            the order of the abdominal organs' walls and of the layer a tool indents (tissue_mechanics.md),
+            and the tissue behind rests on a support (``back_face``), so thicker tissue adds little.
+        border: width (metres) of the band held along each tissue object's outline in view: the tissue goes on
+            beyond the image.
+        back_face: "support": the anatomy behind pushes, never pulls, so a grasper can lift the tissue off.
         box_margin: free space around the tissue in the sim box, as a fraction of its extent per side.
-        grid: identification grid cells per box edge (paper: 50).
-        substeps: substeps per frame (raised automatically to cover the frame interval).
-        dt: substep (s). 1e-4 rather than the paper's 2e-4: at under one particle per cell the MPM is not
-            converged in dt at 2e-4 and identification then favours too stiff a material (see the benchmark
-            suite's description).
-        gravity: world (camera-frame) gravity (m/s^2); see the module docstring for why it is off.
-        damping: grid velocity damping per second.
+        cells_across: grid cells across ``thickness`` (:mod:`endogsim.scene.discretisation`).
+        gravity: magnitude (m/s^2) and ``gravity_direction`` (frame 0's camera coordinates; +y is image
+            down). The camera's orientation is unknown; the default is the laparoscope's usual upright view
+            (CholecSeg8K's liver above the gallbladder, the fluid at the bottom). Frame 0 is the observed
+            equilibrium: the settling under gravity is subtracted from every rollout, so gravity shapes the
+            response (pre-stress) and not the observed rest shape.
+        damping: grid velocity damping (1/s). On EndoNeRF pulling the tissue follows the grasper 5-6 frames
+            (170-200 ms) late without overshoot: strongly over-damped; 100/s relaxes velocity in 10 ms, so the
+            motion is quasi-static between frames, as observed.
+        settle_frames, settle_damping: settling before frame 0 (frames, 1/s).
+        mass_scaling: quasi-static mass scaling k (:class:`endogsim.physics.Scenario`): substeps / sqrt(k).
+            On EndoNeRF pulling (42 frames, prior materials) k = 4 changes the particle motion by 7% RMS
+            (k = 16: 25%) and halves the substeps; the discretisation itself is further from converged.
+        grey_saturation: an instrument's Gaussians with saturation (max - min) / max of their colour below
+            this are its metal core (the collider is fitted to those).
+        clearance: a collider pushed out of the tissue ends this far (in grid cells) from the nearest particle.
     """
 
-    thickness: float = 0.006
+    thickness: float = 0.008
     border: float = 0.004
-    box_margin: float = 0.25
-    grid: int = 50
-    substeps: int = 50
-    dt: float = 1e-4
-    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    damping: float = 0.0
+    back_face: str = "support"
+    box_margin: float = 0.1
+    cells_across: int = 3
+    gravity: float = 9.81
+    gravity_direction: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    damping: float = 100.0
+    settle_frames: int = 2
+    settle_damping: float = 400.0
+    mass_scaling: float = 4.0
+    grey_saturation: float = 0.3
+    clearance: float = 0.25
+
+
+@dataclass
+class ToolFit:
+    """One instrument's collider and how it was fitted.
+
+    Attributes:
+        object_id: the instrument's object id.
+        tip, end: [3] capsule axis ends (metres, frame 0); radius: metres.
+        gaussians: the instrument's Gaussians; core: those fitted (its grey core, or all when too few are grey).
+        pushed: distance (metres) the capsule was moved towards the camera out of the tissue.
+        inside: tissue particles inside the capsule as fitted (before the push).
+    """
+
+    object_id: int
+    tip: np.ndarray
+    end: np.ndarray
+    radius: float
+    gaussians: int
+    core: int
+    pushed: float = 0.0
+    inside: int = 0
+
+    def to_json(self) -> dict:
+        return {"object_id": self.object_id, "tip": self.tip.tolist(), "end": self.end.tolist(), "radius": self.radius,
+                "gaussians": self.gaussians, "core_gaussians": self.core, "pushed_m": self.pushed,
+                "tissue_particles_inside_before_push": self.inside}
 
 
 def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
@@ -93,9 +148,117 @@ def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None
     return tip, end, radius
 
 
+def grey_core(g: Gaussians, max_saturation: float, min_opacity: float = 0.3, min_count: int = 20) -> torch.Tensor:
+    """[N] bool: the opaque, low-saturation (metal) Gaussians of ``g``; all opaque ones when fewer than
+    ``min_count`` are grey (an instrument painted or lit in colour)."""
+    rgb = g.colors_dc.detach().clamp(0, 1)
+    hi, lo = rgb.max(-1).values, rgb.min(-1).values
+    opaque = g.opacities.detach() >= min_opacity
+    grey = opaque & ((hi - lo) / hi.clamp_min(1e-3) < max_saturation)
+    return grey if int(grey.sum()) >= min_count else opaque
+
+
+def _segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance [N] of points x [N, 3] to the segment a-b."""
+    ab = b - a
+    s = np.clip((x - a) @ ab / max(float(ab @ ab), 1e-18), 0.0, 1.0)
+    return np.linalg.norm(x - (a + s[:, None] * ab), axis=1)
+
+
+def push_out_of_tissue(tip: np.ndarray, end: np.ndarray, radius: float, tissue: np.ndarray, clearance: float,
+                       camera_center: np.ndarray | None = None, max_push: float = 0.05) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Move a capsule towards the camera, along the viewing ray of its centre, until no tissue point lies
+    within ``radius + clearance`` of its axis.
+
+    Args:
+        tip, end: [3] axis ends (metres); radius: metres; tissue: [P, 3] tissue particle positions (metres).
+        clearance: extra distance kept from the nearest tissue point (metres).
+        max_push: the farthest move (metres); a capsule that needs more is refused.
+    Returns:
+        (tip, end, pushed distance in metres, tissue points inside the capsule before the push).
+    """
+    tip, end = np.asarray(tip, float), np.asarray(end, float)
+    cam = np.zeros(3) if camera_center is None else np.asarray(camera_center, float)
+    c = (tip + end) / 2
+    toward = (cam - c) / max(np.linalg.norm(cam - c), 1e-12)
+    inside = int((_segment_distance(tissue, tip, end) < radius).sum())
+
+    def clear(s: float) -> bool:
+        return bool(_segment_distance(tissue, tip + s * toward, end + s * toward).min() >= radius + clearance)
+
+    if clear(0.0):
+        return tip, end, 0.0, inside
+    if not clear(max_push):
+        raise DataError(f"a tool collider stays inside the tissue even {max_push * 1e3:.0f} mm closer to the camera")
+    lo, hi = 0.0, max_push
+    for _ in range(40):  # bisection to well below a micrometre
+        mid = (lo + hi) / 2
+        lo, hi = (lo, mid) if clear(mid) else (mid, hi)
+    return tip + hi * toward, end + hi * toward, hi, inside
+
+
+def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: np.ndarray, dx: float,
+                         scenario: RealScenario = RealScenario()) -> list[ToolFit]:
+    """One capsule per instrument, fitted to its grey core at frame 0 and pushed out of the tissue.
+
+    Args:
+        g0: every Gaussian at frame 0 (world metres; the camera at the origin).
+        tool_ids: the instruments' object ids (one per instrument).
+        tissue_particles: [P, 3] the tissue's particles at frame 0 (metres).
+        dx: the simulation grid's cell (metres).
+    Returns:
+        a :class:`ToolFit` per instrument with at least 4 Gaussians; warns (:class:`DataWarning`) for every
+        instrument whose capsule held tissue particles, with the count and the distance it was moved (one
+        only closer than the clearance is moved without a warning; scene.json records every move).
+    """
+    fits = []
+    for oid in tool_ids:
+        sel = g0.object_ids == oid
+        if int(sel.sum()) < 4:
+            warnings.warn(f"instrument {oid}: {int(sel.sum())} Gaussians, too few for a collider; it does not "
+                          "touch the simulated tissue", DataWarning, stacklevel=2)
+            continue
+        tool = g0.subset(sel)
+        core = grey_core(tool, scenario.grey_saturation)
+        tip, end, radius = fit_tool_capsule(tool.means[core].detach().double().numpy())
+        tip, end, pushed, inside = push_out_of_tissue(tip, end, radius, tissue_particles, scenario.clearance * dx)
+        if inside:
+            warnings.warn(f"instrument {oid}: its fitted collider (radius {radius * 1e3:.1f} mm) held {inside} tissue "
+                          f"particles at frame 0; moved {pushed * 1e3:.2f} mm towards the camera out of the tissue",
+                          DataWarning, stacklevel=2)
+        fits.append(ToolFit(oid, tip, end, radius, int(sel.sum()), int(core.sum()), pushed, inside))
+    return fits
+
+
 def _relative_transforms(M: np.ndarray) -> np.ndarray:
     """[T, 4, 4] canonical -> frame t transforms to frame 0 -> frame t transforms (frame 0 = identity)."""
     return M @ np.linalg.inv(M[0])[None]
+
+
+def _real_scenario(objects: list[dict], tissue_pts: np.ndarray, frame_dt: float, sc: RealScenario) -> dict:
+    """The ``scenario`` of scene.json for a real video (tools added by the caller)."""
+    from endogsim.scene.discretisation import plan_discretisation
+    from endogsim.scene.schema import SceneObject
+
+    rays = tissue_pts / np.linalg.norm(tissue_pts, axis=1, keepdims=True)
+    extent_pts = np.concatenate([tissue_pts, tissue_pts + sc.thickness * rays])
+    lo, hi = extent_pts.min(0), extent_pts.max(0)
+    size = float((hi - lo).max() * (1 + 2 * sc.box_margin))
+    box_lo = ((lo + hi) / 2 - size / 2).tolist()
+    soft = [SceneObject(id=o["id"], name=o["name"], klass=o["class"], rigid=o["rigid"]) for o in objects]
+    ident = plan_discretisation(soft, size, sc.thickness, frame_dt, cells_across=sc.cells_across)
+    g = np.asarray(sc.gravity_direction, float)
+    g = sc.gravity * g / max(np.linalg.norm(g), 1e-12)
+    return {
+        "box_lo": box_lo, "box_size": size, "gravity": g.tolist(), "frame_dt": frame_dt, "damping": sc.damping,
+        "boundary_conditions": [{"type": "box_walls", "cells": 2}] + [
+            {"type": "anchors", "object": o["name"], "back_face": sc.back_face, "border": sc.border}
+            for o in objects if not o["rigid"]],
+        "tools": [],
+        "extrusion": {"along": "viewing_rays", "thickness": {o["name"]: sc.thickness for o in objects if not o["rigid"]}},
+        "ground_truth": asdict(ident), "identification": asdict(ident),
+        "settle_frames": sc.settle_frames, "settle_damping": sc.settle_damping, "mass_scaling": sc.mass_scaling,
+    }
 
 
 def scene_from_reconstruction(
@@ -105,7 +268,7 @@ def scene_from_reconstruction(
     *,
     truth: str | Path | None = None,
     tool_motion: str = "reconstructed",
-    defaults: ScenarioDefaults = ScenarioDefaults(),
+    scenario: RealScenario = RealScenario(),
     name: str | None = None,
 ) -> Path:
     """Write a simulation-ready scene folder from a reconstruction run.
@@ -118,10 +281,10 @@ def scene_from_reconstruction(
             flow to reuse (benchmark protocol); None for a real video.
         tool_motion: "reconstructed" (the tools' tracked rigid motion) or "truth" (the ground-truth scene's
             tool transforms; needs ``truth``).
-        defaults: the scenario of a real video (ignored where ``truth`` gives a value).
+        scenario: the scenario of a real video (unused with ``truth``).
         name: scene name (default: the data folder's name).
     Returns:
-        ``out``.
+        ``out``. ``scene.json`` records the collider fits (``colliders``).
     """
     import cv2
 
@@ -130,7 +293,9 @@ def scene_from_reconstruction(
     from endogsim.io.images import resize_frames
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
     from endogsim.recon.model import load_reconstruction
-    from endogsim.scene.schema import load_scene_spec
+    from endogsim.scene.particles import build_particles, gaussian_surfaces
+    from endogsim.scene.schema import load_scene_spec, scene_spec_from_json
+    from endogsim.scene.tracks import TissueTracks, sample_tracks, write_tissue_tracks
 
     recon_run, data, out = Path(recon_run), Path(data), Path(out)
     if tool_motion not in ("reconstructed", "truth"):
@@ -151,8 +316,8 @@ def scene_from_reconstruction(
     if scene.frames.shape[0] < T:
         raise DataError(f"{data}: {scene.frames.shape[0]} frames, but the reconstruction {recon_run} has {T}")
     frames = resize_frames(scene.frames[:T], (cam.width, cam.height))
-    masks = None
-    if scene.object_masks is not None:
+    masks = _instance_masks(recon_run, T, (cam.width, cam.height))
+    if masks is None and scene.object_masks is not None:
         masks = resize_frames(scene.object_masks[:T].astype(np.int32), (cam.width, cam.height), nearest=True)
 
     gt = load_scene_spec(truth) if truth is not None else None
@@ -162,69 +327,78 @@ def scene_from_reconstruction(
     if gt is not None and gt.frames < T:
         raise DataError(f"{truth}: ground truth has {gt.frames} frames, the reconstruction {T}")
 
-    # Tools: capsule colliders fitted to the reconstructed tool Gaussians at frame 0.
+    times = rec.times.double().numpy()
+    if gt is not None:
+        objects = [dict(asdict(o)) for o in gt.objects]
+        for o in objects:
+            o["class"] = o.pop("klass")
+        sc_doc = json.loads(json.dumps(asdict(gt.scenario)))
+        frame_dt = gt.scenario.frame_dt
+    else:
+        objects = [{"id": i, "name": rec.labels[i].name if i in rec.labels else f"object_{i}",
+                    "class": rec.labels[i].klass if i in rec.labels else "unknown_tissue",
+                    "rigid": i in tool_ids, "E": None, "nu": None, "density": None}
+                   for i in tissue_ids + [i for i in tool_ids if int((g0.object_ids == i).sum()) >= 4]]
+        frame_dt = float(np.median(np.diff(times))) if T > 1 else 1 / 30
+        tissue_pts = g0.means[torch.isin(g0.object_ids, torch.tensor(tissue_ids))].detach().double().numpy()
+        sc_doc = _real_scenario(objects, tissue_pts, frame_dt, scenario)
+
+    cam_doc = {"K": cam.K.double().tolist(), "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist(),
+               "viewmats": None if rec.viewmats is None else rec.viewmats[:T].double().tolist()}
+    doc = {
+        "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0,
+        "frames": T, "objects": objects, "scenario": sc_doc, "camera": cam_doc,
+        "depth_scale": gt.depth_scale if gt is not None else 10000.0,
+        "files": {"images": "images/frame-%06d.color.png", "gaussians_t0": "gaussians_t0.ply", "tracks": "tracks.npz"},
+        "source": "reconstruction+truth" if gt is not None else "reconstruction",
+        "reconstruction": str(recon_run), "data": str(data), "tool_motion": tool_motion,
+    }
+
+    # Tools: one capsule per instrument, moved by its reconstructed (or the ground truth's) rigid motion.
+    spec = scene_spec_from_json(doc, out / "scene.json")
+    ident = spec.scenario.identification
+    tissue_particles = build_particles(gaussian_surfaces(g0, [o.id for o in spec.deformable]), spec, rec.camera,
+                                       ident).particles.x.double().numpy()
+    if gt is None:
+        fits = instrument_colliders(g0, tool_ids, tissue_particles, spec.scenario.box_size / ident.grid, scenario)
+        shapes = {f.object_id: (f.tip, f.end, f.radius) for f in fits}
+    else:  # benchmark protocol: the ground truth's collider shapes
+        fits = []
+        shapes = {t.object_id: (np.asarray(t.tip), np.asarray(t.end), float(t.radius)) for t in gt.scenario.tools}
     tools = []
-    for oid in tool_ids:
-        sel = g0.object_ids == oid
-        if int(sel.sum()) < 4:
-            continue
+    for oid, (tip, end, radius) in shapes.items():
         gt_tool = next((t for t in (gt.scenario.tools if gt else []) if t.object_id == oid), None)
-        if gt_tool is not None:  # benchmark protocol: the ground truth's collider shape
-            tip, end, radius = np.asarray(gt_tool.tip), np.asarray(gt_tool.end), float(gt_tool.radius)
-        else:
-            tip, end, radius = fit_tool_capsule(g0.means[sel].detach().double().numpy())
         if tool_motion == "truth" or oid not in tool_tf:
             if gt_tool is None:
                 raise DataError(f"tool {oid}: no reconstructed motion and no ground-truth trajectory")
             transforms = np.asarray(gt_tool.transforms, dtype=np.float64)[:T]
         else:
             transforms = tool_tf[oid]
-        tools.append({"object_id": oid, "tip": tip.tolist(), "end": end.tolist(), "radius": radius,
-                      "transforms": transforms.tolist(), "contact": "sticky"})
+        tools.append({"object_id": oid, "tip": np.asarray(tip).tolist(), "end": np.asarray(end).tolist(),
+                      "radius": float(radius), "transforms": transforms.tolist(), "contact": "sticky"})
+    doc["scenario"]["tools"] = tools
+    doc["colliders"] = [f.to_json() for f in fits]
+    if gt is None:
+        from endogsim.scene.motion import tool_speed
+        from endogsim.scene.schema import ToolCapsule
 
-    if gt is not None:
-        objects = [dict(asdict(o)) for o in gt.objects]
-        for o in objects:
-            o["class"] = o.pop("klass")
-        scenario = json.loads(json.dumps(asdict(gt.scenario)))
-        scenario["tools"] = tools
-        frame_dt = gt.scenario.frame_dt
-    else:
-        objects = [{"id": i, "name": rec.labels[i].name if i in rec.labels else f"object_{i}",
-                    "class": rec.labels[i].klass if i in rec.labels else "unknown_tissue",
-                    "rigid": i in tool_ids, "E": None, "nu": None, "density": None, "model": "fixed_corotated"}
-                   for i in tissue_ids + [t["object_id"] for t in tools]]
-        times = rec.times.double().numpy()
-        frame_dt = float(np.median(np.diff(times))) if T > 1 else 1 / 30
-        tissue_pts = g0.means[torch.isin(g0.object_ids, torch.tensor(tissue_ids))].detach().double().numpy()
-        rays = tissue_pts / np.linalg.norm(tissue_pts, axis=1, keepdims=True)
-        extent_pts = np.concatenate([tissue_pts, tissue_pts + defaults.thickness * rays])
-        lo, hi = extent_pts.min(0), extent_pts.max(0)
-        size = float((hi - lo).max() * (1 + 2 * defaults.box_margin))
-        box_lo = ((lo + hi) / 2 - size / 2).tolist()
-        dx = size / defaults.grid
-        scenario = {
-            "box_lo": box_lo, "box_size": size, "gravity": list(defaults.gravity), "frame_dt": frame_dt,
-            "damping": defaults.damping,
-            "boundary_conditions": [{"type": "box_walls", "cells": 2}] + [
-                {"type": "anchors", "object": o["name"], "back_face": True, "border": defaults.border}
-                for o in objects if not o["rigid"]],
-            "tools": tools, "particle_spacing": dx,
-            "extrusion": {"along": "viewing_rays", "thickness": {o["name"]: defaults.thickness
-                                                                for o in objects if not o["rigid"]}},
-            "ground_truth": {"grid": defaults.grid, "dt": defaults.dt, "substeps": defaults.substeps, "cfl": float("nan")},
-            "identification": {"grid": defaults.grid, "dt": defaults.dt, "substeps": defaults.substeps,
-                               "cfl": float("nan")},
-        }
-    if abs(frame_dt - scenario["identification"]["dt"] * scenario["identification"]["substeps"]) > 1e-9:
+        # Substeps: the CFL rule for the tool speed now; the materials' wave speed is added at run time.
+        speed = tool_speed([ToolCapsule(**t) for t in tools], frame_dt)
+        n = max(1, math.ceil(frame_dt * speed / (0.5 * spec.scenario.box_size / ident.grid)))
+        doc["scenario"]["identification"] = doc["scenario"]["ground_truth"] = asdict(
+            replace(ident, substeps=n, dt=frame_dt / n))
+    ident_doc = doc["scenario"]["identification"]
+    if abs(frame_dt - ident_doc["dt"] * ident_doc["substeps"]) > 1e-9:
         # The identification discretisation must cover one frame interval exactly.
-        sub = max(int(scenario["identification"]["substeps"]), math.ceil(frame_dt / scenario["identification"]["dt"] - 1e-9))
-        scenario["identification"]["substeps"] = sub
-        scenario["identification"]["dt"] = frame_dt / sub
+        sub = max(int(ident_doc["substeps"]), math.ceil(frame_dt / ident_doc["dt"] - 1e-9))
+        ident_doc["substeps"], ident_doc["dt"] = sub, frame_dt / sub
+
+    # Tracks: the reconstruction's own trajectories of a sample of tissue Gaussians.
+    idx = sample_tracks(g0.object_ids, g0.opacities, [o["id"] for o in objects if not o["rigid"]])
+    positions = torch.stack([rec.gaussians_at(t, include_tools=True).means[idx] for t in range(T)])
 
     if out.exists() and not (out / "scene.json").is_file() and any(out.iterdir()):
         raise DataError(f"{out} exists and is not a scene folder; choose another output folder")
-    files = {"images": "images/frame-%06d.color.png", "gaussians_t0": "gaussians_t0.ply"}
     with atomic_folder(out) as tmp:
         (tmp / "images").mkdir()
         for t in range(T):
@@ -232,7 +406,7 @@ def scene_from_reconstruction(
             cv2.imwrite(str(tmp / "images" / f"frame-{t:06d}.color.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
         if masks is not None:
             (tmp / "object_masks").mkdir()
-            files["object_masks"] = "object_masks/frame-%06d.png"
+            doc["files"]["object_masks"] = "object_masks/frame-%06d.png"
             for t in range(T):
                 cv2.imwrite(str(tmp / "object_masks" / f"frame-{t:06d}.png"), np.clip(masks[t], 0, 65535).astype(np.uint16))
         if gt is not None and gt.files.get("flow") and (Path(truth) / (gt.files["flow"] % 0)).is_file():
@@ -241,20 +415,24 @@ def scene_from_reconstruction(
                 pat = gt.files.get(key)
                 if not pat:
                     continue
-                files[key] = pat
+                doc["files"][key] = pat
                 for t in range(T - 1):
                     src = Path(truth) / (pat % t)
                     if src.is_file():
                         shutil.copyfile(src, tmp / (pat % t))
         write_ply(g0.detach(), tmp / "gaussians_t0.ply")
-        K = cam.K.double().tolist()
-        doc = {
-            "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0, "frames": T, "objects": objects,
-            "scenario": scenario,
-            "camera": {"K": K, "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist()},
-            "depth_scale": gt.depth_scale if gt is not None else 10000.0, "files": files,
-            "source": "reconstruction+truth" if gt is not None else "reconstruction",
-            "reconstruction": str(recon_run), "data": str(data), "tool_motion": tool_motion,
-        }
+        write_tissue_tracks(tmp / "tracks.npz", TissueTracks(idx, positions))
         write_json_atomic(tmp / "scene.json", doc)
     return out
+
+
+def _instance_masks(recon_run: Path, T: int, size: tuple[int, int]) -> np.ndarray | None:
+    """The reconstruction's object masks (tool classes split into instruments), [T, H, W] int32, or None
+    when the run did not keep them."""
+    from endogsim.io.images import read_grey, resize_frames
+
+    folder = recon_run / "object_masks"
+    if not (folder / "frame-000000.png").is_file():
+        return None
+    m = np.stack([read_grey(folder / f"frame-{t:06d}.png").astype(np.int32) for t in range(T)])
+    return resize_frames(m, size, nearest=True)

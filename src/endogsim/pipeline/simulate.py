@@ -22,10 +22,10 @@ import numpy as np
 import torch
 
 from endogsim.errors import DataError, MaterialError, SimulationError
+from endogsim.gaussians.model import covariance_to_scale_rot
 from endogsim.io.atomic import write_json_atomic
 from endogsim.io.runfolder import run_folder
 from endogsim.materials.field import MaterialField
-from endogsim.gaussians.model import covariance_to_scale_rot
 from endogsim.pipeline.interaction import Interaction, Located, load_interaction
 
 __all__ = ["resolve_scene", "surface_point", "build_interaction", "simulate_interaction"]

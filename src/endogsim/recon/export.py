@@ -3,19 +3,38 @@ and ``metrics.json``."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from endogsim.gaussians.model import Gaussians
-from endogsim.io.atomic import save_npz_atomic, save_torch_atomic, write_json_atomic
+from endogsim.io.atomic import (
+    atomic_folder,
+    save_npz_atomic,
+    save_torch_atomic,
+    write_json_atomic,
+)
 from endogsim.recon.evaluation import evaluate_frames
 
 if TYPE_CHECKING:
     from endogsim.recon.train import Trainer
 
-__all__ = ["export_run"]
+__all__ = ["export_run", "write_object_masks"]
+
+
+def write_object_masks(folder: Path, masks: np.ndarray | None) -> None:
+    """The masks the reconstruction used (one id per instrument after the instance split), as
+    ``frame-%06d.png`` 16-bit ids: the ids of ``objects.json``, 65535 for pixels of no object (unlabelled, or
+    a dropped speck of a tool class). Scene folders built from the run read them."""
+    import cv2
+
+    if masks is None:
+        return
+    with atomic_folder(folder) as tmp:
+        for t, m in enumerate(masks):
+            cv2.imwrite(str(tmp / f"frame-{t:06d}.png"), np.where(m < 0, 65535, m).astype(np.uint16))
 
 
 def export_run(tr: "Trainer") -> dict:
@@ -50,6 +69,7 @@ def export_run(tr: "Trainer") -> dict:
         "field_of_view": None if tr.prep.field_of_view is None else torch.as_tensor(tr.prep.field_of_view),
     }, out / "deformation.pt")
     write_json_atomic(out / "objects.json", labels)
+    write_object_masks(out / "object_masks", sc.object_masks)
     traj = {}
     if tr.motion is not None:
         M = tr.motion.transforms().detach().cpu().numpy()

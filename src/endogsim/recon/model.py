@@ -16,6 +16,8 @@ Run-folder files (all written atomically):
 ``tool_trajectories.json`` per tool: id, name, [T, 4, 4] canonical -> frame transforms (world metres)
 ``tool_trajectories.npz``  the same arrays, ``object_<id>`` [T, 4, 4] and ``times`` [T] (seconds)
 ``objects.json``           id -> name, is_tool, class
+``object_masks/*.png``     the masks reconstruction used, 16-bit ids of objects.json (one per instrument
+                           after the instance split), 65535 = no object
 ``renders/test/*.png``     test-frame renders (tissue model); ``renders/test_full/`` with tools
 ``metrics.json``           PSNR/SSIM (both protocols), training seconds, Gaussian count, priors used
 ``config.json``            the configuration of the run

@@ -44,6 +44,7 @@ from endogsim.physics import (
 )
 from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces
 from endogsim.scene.schema import SceneSpec, load_scene_spec
+from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
 __all__ = ["SimScene", "load_sim_scene", "read_observations"]
 
@@ -67,6 +68,9 @@ class SimScene:
         binding: how each Gaussian follows its k nearest particles.
         tool_transforms: {object id: [T, 4, 4] world rigid transforms per frame} for rigid Gaussians.
         gt_flow: [T-1, H, W, 2] ground-truth flow (pixels) or None; gt_flow_valid: [T-1, H, W] bool or None.
+        viewmats: [T, 4, 4] world -> camera per frame (a moving endoscope) or None (a still camera,
+            ``camera.viewmat``).
+        tracks: the reconstruction's tissue trajectories (``tracks.npz``) or None.
     """
 
     folder: Path
@@ -84,6 +88,8 @@ class SimScene:
     tool_transforms: dict[int, torch.Tensor]
     gt_flow: np.ndarray | None = None
     gt_flow_valid: np.ndarray | None = None
+    viewmats: torch.Tensor | None = None
+    tracks: TissueTracks | None = None
     _simulator: Simulator | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
@@ -179,11 +185,22 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         tool_tf[tool.object_id] = tf
     scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=filled.anchors(),
                         forces=scenario_forces(spec, particles), colliders=colliders,
-                        settle_frames=int(sc.settle_frames), settle="subtract", settle_damping=sc.settle_damping)
+                        settle_frames=int(sc.settle_frames), settle="subtract", settle_damping=sc.settle_damping,
+                        mass_scaling=float(sc.mass_scaling))
     walls = next((int(b.get("cells", 2)) for b in sc.boundary_conditions if b.get("type") == "box_walls"), 2)
     mpm = MPMConfig(grid_res=int(ident.grid), frame_dt=float(sc.frame_dt), substeps_per_frame=int(ident.substeps),
                     dt=None, damping=float(sc.damping), wall="sticky", wall_padding=max(2, walls), device=device)
     binding = bind_gaussians(g.means, g.object_ids, particles)
+    viewmats = None
+    if cam_t.viewmats is not None:
+        viewmats = torch.tensor(cam_t.viewmats, dtype=torch.float32)
+        if viewmats.shape[1:] != (4, 4) or viewmats.shape[0] < T:
+            raise DataError(f"{folder}: camera.viewmats has shape {tuple(viewmats.shape)}; expected [{T}, 4, 4]")
+        viewmats = viewmats[:T]
+    tracks = None
+    if spec.files.get("tracks"):
+        tracks = read_tissue_tracks(folder / spec.files["tracks"], len(g.means), T)
     return SimScene(folder=folder, spec=spec, labels=labels, frames=obs, object_masks=masks, camera=camera,
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
-                           binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid)
+                           binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
+                           viewmats=viewmats, tracks=tracks)

@@ -4,6 +4,10 @@
         --drive_gaussians-->  Gaussian means / covariances per frame (tools follow their rigid transforms)
         --render_with_flow-->  RGB [T,H,W,3] and Gaussian flow t -> t+1 [T-1,H,W,2] (or at every k-th frame)
 
+A moving endoscope (``SimScene.viewmats``) is handled by rendering frame t in camera t's coordinates: the
+flow t -> t+1 then compares camera t's view of frame t with camera t+1's view of frame t+1, which is what an
+optical-flow estimator measures on the video.
+
 Every step is differentiable, so a loss on the renders back-propagates to E and nu (and through them to
 the optimiser's log10 E and raw nu).
 """
@@ -21,7 +25,7 @@ from endogsim.gaussians.render import rasterize
 from endogsim.physics import GradMode, ObjectMaterials, drive_gaussians
 from endogsim.scene.folder import SimScene
 
-__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "render_sequence"]
+__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "in_view", "render_sequence"]
 
 
 @dataclass
@@ -34,12 +38,15 @@ class Rendered:
             frames t with t + 1 < T (K' = K, or K - 1 when the last frame is rendered).
         alpha: [K, H, W] accumulated opacity.
         frames: the frame indices rendered (ascending).
+        tracks: [K, N, 2] pixel positions (rendered resolution) of the scene's tracked Gaussians
+            (``SimScene.tracks``) at those frames, or None when the scene has no tracks.
     """
 
     rgb: torch.Tensor
     flow: torch.Tensor
     alpha: torch.Tensor
     frames: list[int]
+    tracks: torch.Tensor | None = None
 
 
 def simulate_materials(scene: SimScene, materials: ObjectMaterials,
@@ -67,6 +74,16 @@ def frame_gaussians(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     return means, covs
 
 
+def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t: int):
+    """Means [N, 3] (and covariances [N, 3, 3], or None) of frame t in camera t's coordinates (unchanged for
+    a still camera, whose world is its camera frame)."""
+    if problem.viewmats is None:
+        return means, covs
+    V = problem.viewmats[t].to(means)
+    R = V[:3, :3]
+    return means @ R.T + V[:3, 3], None if covs is None else R @ covs @ R.T
+
+
 def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
                     backend: str = "auto", frames: Sequence[int] | None = None) -> Rendered:
     """Render frames of a simulation and the Gaussian flow from each to the next.
@@ -86,17 +103,20 @@ def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     opac = g.opacities.float().detach()
     colors = g.colors_dc.clamp(0, 1).float().detach() if g.sh_degree == 0 else g.sh.float().detach()
     needed = sorted(set(frames) | {t + 1 for t in frames if t + 1 < T})
-    states = {t: frame_gaussians(problem, positions, F, cov0, t) for t in needed}
-    rgbs, flows, alphas = [], [], []
+    states = {t: in_view(problem, *frame_gaussians(problem, positions, F, cov0, t), t) for t in needed}
+    view = Camera(camera.K, camera.width, camera.height) if problem.viewmats is not None else camera
+    rgbs, flows, alphas, tracks = [], [], [], []
     for t in frames:
         m, c = states[t]
         if t + 1 < T:
-            r = render_with_flow(m, opac, colors, camera, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
+            r = render_with_flow(m, opac, colors, view, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
                                  backend=backend)
             flows.append(r.flow)
         else:
-            r = rasterize(m, opac, colors, camera, covars=c, backend=backend)
+            r = rasterize(m, opac, colors, view, covars=c, backend=backend)
         rgbs.append(r.rgb)
         alphas.append(r.alpha)
+        if problem.tracks is not None:
+            tracks.append(view.project(m[problem.tracks.index]))
     flow = torch.stack(flows) if flows else torch.zeros(0, camera.height, camera.width, 2)
-    return Rendered(torch.stack(rgbs), flow, torch.stack(alphas), frames)
+    return Rendered(torch.stack(rgbs), flow, torch.stack(alphas), frames, torch.stack(tracks) if tracks else None)

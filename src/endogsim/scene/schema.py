@@ -22,7 +22,7 @@ from endogsim.errors import DataError, MaterialError
 from endogsim.materials.field import MaterialRecord
 
 __all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ObjectBoundary", "ScenarioSpec", "CameraSpec", "SceneSpec",
-           "load_scene_spec"]
+           "load_scene_spec", "scene_spec_from_json"]
 
 SCENE_JSON_VERSION = 2
 
@@ -87,6 +87,14 @@ class SimSettings:
     cfl: float
     particle_spacing: float | None = None
 
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "SimSettings":
+        """From scene.json, where an unknown CFL number (NaN: materials not known yet) is written null."""
+        d = {k: v for k, v in d.items() if k != "non_finite"}
+        if d.get("cfl") is None:
+            d["cfl"] = float("nan")
+        return SimSettings(**d)
+
 
 @dataclass
 class ObjectBoundary:
@@ -127,6 +135,8 @@ class ScenarioSpec:
     ``settle_frames``: frames simulated before frame 0 under gravity with the tools still, so that frame 0
     is the tissue's equilibrium, with grid damping ``settle_damping`` (1/s; None: ``damping``) to reach it
     in those few frames (see :class:`endogsim.physics.Scenario`).
+    ``mass_scaling``: quasi-static mass scaling of identification's simulations (see
+    :class:`endogsim.physics.Scenario`; 1 = none).
     ``forces``: what else drives the tissue; an impulse (the paper's protocol) is
     ``{"type": "impulse", "object": NAME, "center": [x, y, z], "radius": m, "velocity": [vx, vy, vz] m/s,
     "t_start": s}``: every particle of the object within ``radius`` of ``center`` gets the velocity at t_start.
@@ -145,6 +155,7 @@ class ScenarioSpec:
     settle_frames: int = 0
     settle_damping: float | None = None
     forces: list[dict[str, Any]] = field(default_factory=list)
+    mass_scaling: float = 1.0
     particle_spacing: float | None = None  # scene.json version 1: the one spacing of both discretisations
 
     def thickness(self, name: str) -> float:
@@ -168,12 +179,15 @@ class ScenarioSpec:
 
 @dataclass
 class CameraSpec:
-    """Pinhole camera: K [3][3] pixels, image size, world->camera ``viewmat`` [4][4] (identity)."""
+    """Pinhole camera: K [3][3] pixels, image size, world->camera ``viewmat`` [4][4] of frame 0 (the world is
+    frame 0's camera frame: identity), and for a moving endoscope ``viewmats`` [T][4][4], the world->camera
+    transform of every frame (None: the camera is still)."""
 
     K: list[list[float]]
     width: int
     height: int
     viewmat: list[list[float]]
+    viewmats: list[list[list[float]]] | None = None
 
 
 @dataclass
@@ -218,11 +232,23 @@ def load_scene_spec(path: str | Path) -> SceneSpec:
         raise DataError(f"{p}: no scene.json (make one with `endogsim synth`)")
     try:
         d = json.loads(p.read_text())
+    except ValueError as exc:
+        raise DataError(f"{p}: malformed scene.json ({exc})") from exc
+    spec = scene_spec_from_json(d, p)
+    _check_files(spec, p)
+    return spec
+
+
+def scene_spec_from_json(d: dict[str, Any], where: str | Path = "scene.json") -> SceneSpec:
+    """A :class:`SceneSpec` from the parsed JSON of a ``scene.json`` (``where`` names it in errors), its
+    ground-truth materials checked."""
+    p = Path(where)
+    try:
         objects = [SceneObject(**{("klass" if k == "class" else k): v for k, v in o.items()}) for o in d["objects"]]
         sc = dict(d["scenario"])
         sc["tools"] = [ToolCapsule(**t) for t in sc["tools"]]
-        sc["ground_truth"] = SimSettings(**sc["ground_truth"])
-        sc["identification"] = SimSettings(**sc["identification"])
+        sc["ground_truth"] = SimSettings.from_json(sc["ground_truth"])
+        sc["identification"] = SimSettings.from_json(sc["identification"])
         spec = SceneSpec(
             name=d["name"], seed=d["seed"], frames=d["frames"], objects=objects, scenario=ScenarioSpec(**sc),
             camera=CameraSpec(**d["camera"]), depth_scale=d["depth_scale"], files=d.get("files", {}),
@@ -232,7 +258,6 @@ def load_scene_spec(path: str | Path) -> SceneSpec:
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{p}: malformed scene.json ({exc})") from exc
     _check_materials(spec, p)
-    _check_files(spec, p)
     return spec
 
 

@@ -1,0 +1,134 @@
+"""Does the simulated tissue stay whole? Rendered tissue coverage, frame by frame.
+
+Contact that tears the tissue (a collider cutting through it, particles separating under a tool pulling
+faster than the material can follow) shows as holes: pixels that the tissue covered and that now show
+what is behind it. :func:`tissue_coverage` measures, for every deformable object and frame t, the fraction
+of the object's footprint that the simulated tissue still covers:
+
+    footprint_o(t) = pixels where object o's rest (frame-0) Gaussians, seen by camera t, render opaque
+                     (alpha > 0.5), eroded by ``margin`` pixels and away from the image border;
+    coverage_o(t)  = mean over footprint_o(t) of the simulated tissue's alpha at frame t (any deformable
+                     object counts: tissues may slide over each other).
+
+Seen by the same camera, the rest state and the simulation differ only by the simulated motion, so a moving
+endoscope changes nothing. Motion within the tissue does not change the coverage; a hole does; so does an
+edge that moves more than ``margin`` pixels across a footprint's outline, which only a free edge in view can
+do (a tissue extending beyond the image, or one held along its outline, cannot).
+:func:`check_coverage` turns a drop of more than :data:`COVERAGE_DROP_LIMIT` (1% of the footprint) into a
+:class:`~endogsim.errors.SimulationError` naming the frame and the object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from endogsim.errors import SimulationError
+from endogsim.gaussians.camera import Camera
+from endogsim.gaussians.render import rasterize
+from endogsim.scene.folder import SimScene
+from endogsim.scene.forward import frame_gaussians, in_view
+
+__all__ = ["COVERAGE_DROP_LIMIT", "Coverage", "tissue_coverage", "check_coverage"]
+
+#: The largest drop of a tissue's rendered coverage (fraction of its footprint) a simulation may show.
+COVERAGE_DROP_LIMIT = 0.01
+
+
+@dataclass
+class Coverage:
+    """Rendered coverage of each deformable object's footprint.
+
+    Attributes:
+        frames: the frames measured.
+        per_object: {object id: [len(frames)] coverage in [0, 1]}.
+        footprint_pixels: {object id: footprint size (pixels) at frame 0}.
+    """
+
+    frames: list[int]
+    per_object: dict[int, list[float]]
+    footprint_pixels: dict[int, int]
+
+    def drops(self) -> dict[int, list[float]]:
+        """{object id: coverage(frame 0) - coverage(t) per frame}."""
+        return {oid: [v[0] - x for x in v] for oid, v in self.per_object.items()}
+
+    def worst(self) -> tuple[int | None, int | None, float]:
+        """(object id, frame, drop) of the largest drop (None, None, 0.0 without objects)."""
+        best: tuple[int | None, int | None, float] = (None, None, 0.0)
+        for oid, d in self.drops().items():
+            k = int(np.argmax(d))
+            if d[k] > best[2]:
+                best = (oid, self.frames[k], float(d[k]))
+        return best
+
+    def to_json(self) -> dict:
+        oid, frame, drop = self.worst()
+        return {"frames": self.frames, "per_object": {str(k): v for k, v in self.per_object.items()},
+                "footprint_pixels": {str(k): v for k, v in self.footprint_pixels.items()},
+                "worst": {"object_id": oid, "frame": frame, "drop": drop}, "limit": COVERAGE_DROP_LIMIT}
+
+
+def _erode(mask: np.ndarray, margin: int) -> np.ndarray:
+    from scipy import ndimage
+
+    inner = np.zeros_like(mask)
+    inner[margin:-margin, margin:-margin] = mask[margin:-margin, margin:-margin]
+    return ndimage.binary_erosion(inner, iterations=margin) if margin > 0 else inner
+
+
+@torch.no_grad()
+def tissue_coverage(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera | None = None,
+                    frames: list[int] | None = None, margin: int = 3, backend: str = "auto") -> Coverage:
+    """Coverage of every deformable object's footprint by the simulated tissue (module docstring).
+
+    Args:
+        problem: the scene (Gaussians, binding, cameras).
+        positions: [T, P, 3] simulated particle positions (m); F: [T, P, 3, 3].
+        camera: the camera to render with (default the scene's; a scaled one is faster).
+        frames: frames to measure (default all; frame 0 is always measured, as the reference).
+        margin: footprint erosion (pixels of ``camera``).
+    """
+    camera = problem.camera if camera is None else camera
+    g = problem.gaussians
+    T = positions.shape[0]
+    frames = sorted({0} | set(range(T) if frames is None else (int(t) for t in frames)))
+    ids = list(problem.deformable_ids)
+    tissue = torch.isin(g.object_ids, torch.tensor(ids))
+    opac = torch.where(tissue, g.opacities.float().detach(), torch.zeros(()))  # tools rendered invisible
+    onehot = (g.object_ids[:, None] == torch.tensor(ids)[None]).float()
+    colors = torch.zeros(len(g.means), 3)
+    cov0 = g.covariances().float().detach()
+    rest_means = g.means.float().detach()
+    view = Camera(camera.K, camera.width, camera.height) if problem.viewmats is not None else camera
+    per_object: dict[int, list[float]] = {oid: [] for oid in ids}
+    footprint_pixels: dict[int, int] = {}
+    for t in frames:
+        m, c = in_view(problem, rest_means, cov0, t)
+        ref = rasterize(m, opac, colors, view, covars=c, features=onehot, backend=backend)
+        m, c = in_view(problem, *frame_gaussians(problem, positions, F, cov0, t), t)
+        sim = rasterize(m, opac, colors, view, covars=c, backend=backend)
+        alpha = sim.alpha.cpu().numpy()
+        ref_alpha = ref.features.cpu().numpy()  # [H, W, n objects]: each object's share of the rest render
+        for k, oid in enumerate(ids):
+            foot = _erode(ref_alpha[..., k] > 0.5, margin)
+            if t == 0:
+                footprint_pixels[oid] = int(foot.sum())
+            per_object[oid].append(float(alpha[foot].mean()) if foot.any() else 1.0)
+    return Coverage(frames, per_object, footprint_pixels)
+
+
+def check_coverage(cov: Coverage, problem: SimScene | None = None, limit: float = COVERAGE_DROP_LIMIT) -> None:
+    """Raise :class:`~endogsim.errors.SimulationError` when an object's coverage drops by more than ``limit``
+    (a fraction of its footprint) at some frame; the message names the frame and the object (by its name
+    in ``problem`` when given)."""
+    oid, frame, drop = cov.worst()
+    if oid is not None and drop > limit:
+        name = problem.spec.object(oid).name if problem is not None else f"id {oid}"
+        first = next(cov.frames[k] for k, d in enumerate(cov.drops()[oid]) if d > limit)
+        raise SimulationError(
+            f"the simulated tissue tears: object {name!r} covers less of its footprint from frame {first} on than "
+            f"at frame 0 (by up to {100 * drop:.1f}%, at frame {frame}; limit {100 * limit:.0f}%). A tool collider "
+            "cuts into it or pulls it apart: check the colliders at frame 0 and the tool motion")

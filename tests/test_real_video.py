@@ -1,0 +1,253 @@
+"""The real-video path: instrument colliders, torn tissue caught, quasi-static mass scaling, moving cameras,
+the track term, and ``endogsim validate`` on held-out frames."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from endogsim.errors import DataError, SimulationError
+
+
+def _shared_data() -> Path:
+    env = os.environ.get("ENDOGSIM_SHARED_DATA")
+    return Path(env) if env else (Path(__file__).parents[1] / ".." / "shared" / "data").resolve()
+
+
+# ------------------------------------------------------------------------------------------------- colliders
+def _sheet(z: float = 0.06, half: float = 0.02, step: float = 0.001) -> np.ndarray:
+    u = np.arange(-half, half + 1e-12, step)
+    xx, yy = np.meshgrid(u, u)
+    return np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)], 1)
+
+
+def test_a_collider_inside_the_tissue_is_moved_out_towards_the_camera():
+    from endogsim.pipeline.scene_from_recon import _segment_distance, push_out_of_tissue
+
+    tissue = _sheet()  # a sheet 6 cm from the camera; a capsule lying 1 mm into it
+    tip, end, r = np.array([-0.01, 0.0, 0.061]), np.array([0.01, 0.0, 0.061]), 0.003
+    assert (_segment_distance(tissue, tip, end) < r).sum() > 0
+    tip2, end2, pushed, inside = push_out_of_tissue(tip, end, r, tissue, clearance=0.0005)
+    assert inside == int((_segment_distance(tissue, tip, end) < r).sum())
+    assert _segment_distance(tissue, tip2, end2).min() >= r + 0.0005 - 1e-9
+    assert pushed == pytest.approx(0.0045, abs=1e-6)  # axis 1 mm behind the sheet + 3 mm radius + 0.5 mm clearance
+    np.testing.assert_allclose(np.cross(tip2 - tip, (tip + end) / 2), 0.0, atol=1e-9)  # along the viewing ray
+    same = push_out_of_tissue(tip2, end2, r, tissue, clearance=0.0005)
+    assert same[2] == 0.0 and same[3] == 0  # already clear: untouched
+    with pytest.raises(DataError, match="stays inside the tissue"):
+        push_out_of_tissue(np.array([0, 0, 0.2]), np.array([0, 0, 0.01]), r, _sheet(half=0.2, step=0.004),
+                           clearance=0.0, max_push=0.01)
+
+
+def test_the_collider_is_fitted_to_the_grey_core_not_to_a_leaking_mask():
+    from endogsim.gaussians.model import Gaussians
+    from endogsim.pipeline.scene_from_recon import instrument_colliders
+
+    g = torch.Generator().manual_seed(0)
+    # A grey shaft of radius 2 mm along x at 4 cm, seen from above, and a reddish leak of the mask beside it.
+    n = 400
+    s = torch.rand(n, generator=g) * 0.03 - 0.015
+    a = torch.rand(n, generator=g) * torch.pi
+    shaft = torch.stack([s, -0.002 * torch.cos(a), 0.04 - 0.002 * torch.sin(a)], 1)
+    leak = torch.stack([torch.rand(200, generator=g) * 0.03 - 0.015, 0.002 + torch.rand(200, generator=g) * 0.006,
+                        torch.full((200,), 0.041)], 1)
+    means = torch.cat([shaft, leak])
+    colors = torch.cat([torch.full((n, 3), 0.6), torch.tensor([[0.8, 0.3, 0.3]]).expand(200, 3)])
+    tool = Gaussians.from_points(means, colors, scales=0.0005, object_ids=7, opacity=0.9)
+    fits = instrument_colliders(tool, [7], _sheet(z=0.05), dx=0.002)
+    assert len(fits) == 1 and fits[0].object_id == 7 and fits[0].core == n
+    assert 0.0015 < fits[0].radius < 0.0025  # the shaft's radius, not the 5 mm the leak would add
+    assert fits[0].pushed == 0.0 and fits[0].inside == 0
+
+
+# ------------------------------------------------------------------------------------------------- coverage
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from endogsim.scene.folder import load_sim_scene
+    from endogsim.synth import synthesize
+
+    return load_sim_scene(synthesize("tiny", tmp_path_factory.mktemp("real") / "tiny", seed=0, frames=5))
+
+
+def _truth(problem):
+    from endogsim.physics import ObjectMaterials
+
+    M = max(o.id for o in problem.spec.objects) + 1
+    E, nu, rho, model = [1.0] * M, [0.0] * M, [1.0] * M, ["fixed_corotated"] * M
+    for o in problem.spec.deformable:
+        E[o.id], nu[o.id], rho[o.id], model[o.id] = o.E, o.nu, o.density, o.model
+    return ObjectMaterials.of(E, nu, rho, model)
+
+
+def test_torn_tissue_is_caught_by_its_coverage_naming_frame_and_object(tiny_scene):
+    from endogsim.scene.coverage import check_coverage, tissue_coverage
+
+    p = tiny_scene
+    res = p.simulator().simulate(_truth(p))
+    cam = p.camera.scaled(0.5)
+    whole = tissue_coverage(p, res.positions, res.F, cam)
+    check_coverage(whole, p)  # the ground truth's own materials: whole
+    assert whole.worst()[2] < 0.002
+    torn = res.positions.clone()
+    right = res.positions[0, :, 0] > 0
+    torn[3:, right, 0] += 0.02  # the right half pulled 2 cm away from frame 3 on
+    cov = tissue_coverage(p, torn, res.F, cam)
+    oid, frame, drop = cov.worst()
+    assert oid == 1 and frame >= 3 and drop > 0.05
+    with pytest.raises(SimulationError, match=r"object 'tissue' covers less of its footprint from frame 3 on"):
+        check_coverage(cov, p)
+
+
+# ------------------------------------------------------------------------------------------------- mass scaling
+def test_mass_scaling_keeps_the_quasi_static_answer_with_fewer_substeps(tiny_scene):
+    from endogsim.physics import Simulator
+
+    p = tiny_scene
+    base = replace(p.scenario, colliders=[], gravity=(0.0, 0.0, 9.81), settle_frames=0)
+    mpm = replace(p.mpm, damping=200.0, substeps_per_frame=1)
+    out = {}
+    for k in (1.0, 4.0):  # sag under gravity, strongly damped: the equilibrium does not depend on the mass
+        sim = Simulator(p.particles, replace(base, mass_scaling=k), mpm, 40)
+        res = sim.simulate(_truth(p))
+        out[k] = (res.positions[-1] - res.positions[0], res.substeps)
+    sag1, n1 = out[1.0]
+    sag4, n4 = out[4.0]
+    assert n4 < 0.6 * n1  # the wave speed halves
+    assert float(sag1[:, 2].max()) > 1e-4  # it sags (> 0.1 mm)
+    rel = float((sag4 - sag1).norm(dim=-1).max() / sag1.norm(dim=-1).max())
+    assert rel < 0.05, rel
+    from endogsim.physics import ExternalForce, Scenario
+
+    with pytest.raises(SimulationError, match="impulse"):
+        Scenario(base.box, forces=[ExternalForce(acceleration=(0, 0, 1.0), impulse=True,
+                                                 particle_mask=torch.ones(len(p.particles), dtype=torch.bool))],
+                 mass_scaling=2.0)
+
+
+# ------------------------------------------------------------------------------------------------- cameras, tracks
+def test_a_moving_camera_renders_each_frame_in_its_own_view(tiny_scene):
+    from endogsim.gaussians.camera import Camera
+    from endogsim.scene.forward import in_view
+
+    p = replace(tiny_scene)
+    a = 0.1
+    V = torch.eye(4).repeat(3, 1, 1)
+    V[2, :3, :3] = torch.tensor([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], dtype=torch.float32)
+    V[2, :3, 3] = torch.tensor([0.003, -0.002, 0.001])
+    p.viewmats = V
+    pts = p.gaussians.means[:50].float()
+    m, _ = in_view(p, pts, None, 2)
+    plain = Camera(p.camera.K, p.camera.width, p.camera.height)
+    torch.testing.assert_close(plain.project(m), Camera(p.camera.K, p.camera.width, p.camera.height, V[2]).project(pts))
+
+
+def test_the_track_term_compares_projected_trajectories():
+    from endogsim.identify.loss import Observations, track_term
+    from endogsim.scene.forward import Rendered
+
+    T, N, H, W = 4, 30, 16, 20
+    obs_tracks = torch.rand(T, N, 2) * torch.tensor([W, H])
+    valid = torch.ones(T, N, dtype=torch.bool)
+    valid[2, :10] = False  # behind a tool at frame 2
+    obs = Observations(torch.zeros(T, H, W, 3), torch.zeros(T - 1, H, W, 2), torch.ones(T, H, W, dtype=torch.bool),
+                       torch.ones(T - 1, H, W, dtype=torch.bool), obs_tracks, valid)
+    sim = obs_tracks.clone().requires_grad_(True)
+    r = Rendered(torch.zeros(T, H, W, 3), torch.zeros(T - 1, H, W, 2), torch.ones(T, H, W), list(range(T)), sim)
+    frames, v = track_term(r, obs)
+    assert frames == [1, 2, 3] and float(v.detach().abs().max()) == 0.0
+    shifted = sim + torch.tensor([3.0, 4.0])
+    frames, v = track_term(replace(r, tracks=shifted), obs)
+    torch.testing.assert_close(v, torch.full((3,), 25.0))  # 5 px off everywhere (invalid tracks left out)
+    v.sum().backward()
+    assert sim.grad is not None and float(sim.grad[2, :10].abs().max()) == 0.0
+    none = replace(r, tracks=None)
+    assert track_term(none, obs)[0] == []
+
+
+# ------------------------------------------------------------------------------------------------- validate
+@pytest.fixture(scope="module")
+def validated(tmp_path_factory):
+    from endogsim.identify.config import IdentifyConfig
+    from endogsim.pipeline.run import PipelineConfig
+    from endogsim.pipeline.validate import ValidateConfig, run_validate
+    from endogsim.recon.config import ReconConfig
+    from endogsim.synth import synthesize
+
+    root = tmp_path_factory.mktemp("validate")
+    data = synthesize("tiny", root / "data", seed=0, frames=6)
+    cfg = ValidateConfig(pipeline=PipelineConfig(recon=ReconConfig(iters=60, resolution_scale=1.0),
+                                                 identify=IdentifyConfig(iters=1), interaction=None))
+    return run_validate(data, root / "run", cfg, log=lambda *a: None), root / "run", cfg
+
+
+def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulation(validated):
+    from endogsim.identify.loss import make_observations, observed_flow
+    from endogsim.identify.run import initial_field
+    from endogsim.pipeline.validate import heldout_scores
+    from endogsim.scene.folder import load_sim_scene
+    from endogsim.scene.forward import render_sequence
+
+    res, run, cfg = validated
+    assert set(res) >= {"clip", "train_frames", "test_frames", "prediction", "baselines", "materials", "identifiable",
+                        "seconds"}
+    assert res["train_frames"] == 4 and res["test_frames"] == 2
+    assert set(res["baselines"]) == {"prior", "zero_motion", "reconstruction"}
+    for v in [res["prediction"], *res["baselines"].values()]:
+        assert set(v) == {"epe", "psnr_masked"} and all(np.isfinite(x) for x in v.values())
+    assert json.loads((run / "validate" / "validate.json").read_text())["train_frames"] == 4
+    html = (run / "report.html").read_text()
+    assert "Held-out validation" in html and "Identifiability" in html and "Tissue coverage" in html
+    # The prior baseline is a plain simulation of the scene with the initial materials, scored the same way.
+    p = load_sim_scene(run / "scene")
+    fld, _ = initial_field(p, "prior")
+    sim = p.simulator().simulate(fld.simulator_materials())
+    cam = p.camera.scaled(cfg.eval_scale)
+    r = render_sequence(p, sim.positions, sim.F, cam, frames=[3, 4, 5])
+    U = observed_flow(p.frames, cfg.pipeline.identify.flow)
+    obs = make_observations(p.frames, U, p.object_masks, p.deformable_ids, (cam.width, cam.height))
+    plain = heldout_scores(r.rgb[1:].numpy(), r.flow.numpy(), obs.frames[[4, 5]].numpy(), obs.flow[[3, 4]].numpy(),
+                           obs.valid_rgb[[4, 5]].numpy(), obs.valid_flow[[3, 4]].numpy())
+    assert plain == pytest.approx(res["baselines"]["prior"], rel=1e-6)
+
+
+def test_no_tissue_lies_inside_a_collider_at_frame_0(validated):
+    from endogsim.pipeline.scene_from_recon import _segment_distance
+    from endogsim.scene.folder import load_sim_scene
+
+    _, run, _ = validated
+    p = load_sim_scene(run / "scene")
+    x = p.particles.x.double().numpy()
+    tools = p.spec.scenario.tools
+    assert len(tools) == 1  # one probe, one collider
+    for t in tools:
+        assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius
+    assert json.loads((run / "scene" / "scene.json").read_text())["colliders"][0]["object_id"] == tools[0].object_id
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("clip, instruments", [("endonerf_pulling", 2), ("cholecseg8k_clip", 1)])
+def test_real_clips_give_one_collider_per_instrument(tmp_path, clip, instruments):
+    from endogsim.pipeline.scene_from_recon import _segment_distance, scene_from_reconstruction
+    from endogsim.recon.config import ReconConfig
+    from endogsim.recon.train import reconstruct
+    from endogsim.scene.folder import load_sim_scene
+
+    data = _shared_data() / clip
+    if not data.is_dir():
+        pytest.skip(f"no {data}")
+    # A few iterations are enough: the objects and their Gaussians are made at initialisation.
+    reconstruct(data, tmp_path / "recon", ReconConfig(iters=20, resolution_scale=0.25, max_frames=8))
+    scene = scene_from_reconstruction(tmp_path / "recon", data, tmp_path / "scene")
+    p = load_sim_scene(scene)
+    tools = p.spec.scenario.tools
+    assert len(tools) == instruments and len({t.object_id for t in tools}) == instruments
+    x = p.particles.x.double().numpy()
+    for t in tools:
+        assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius
+
