@@ -28,7 +28,8 @@ import torch
 
 from endogsim.materials.field import MaterialParams
 
-__all__ = ["Z_90", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "interval_from_slice", "parameter_intervals"]
+__all__ = ["Z_90", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "interval_from_slice", "walk_slice",
+           "identifiability", "parameter_intervals"]
 
 #: One-sided 90% normal quantile: a trial value with z above it is excluded.
 Z_90 = 1.645
@@ -104,6 +105,57 @@ def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, fl
     return [ends[-1], ends[1]], bounded[-1], bounded[1]
 
 
+def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
+               compare: Callable[[float], tuple[float, float, float]], threshold: float = Z_90,
+               ) -> tuple[list[float], bool, bool, list[list[float]]]:
+    """Walk one parameter's slice outward from ``best`` and return its interval.
+
+    On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
+    side stops at the first excluded value (z > ``threshold``) or where the box ends.
+
+    Args:
+        best: the optimum (slice coordinate, e.g. log10 E).
+        steps: distances from ``best``, increasing.
+        box: the search box in the same coordinate.
+        compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
+        threshold: z above which a value is excluded.
+    Returns:
+        ([lo, hi], bounded below, bounded above, [[value, Delta L, SE, z], ...] in the order evaluated).
+    """
+    sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
+    records: list[list[float]] = []
+    for side in (-1, 1):
+        for step in steps:
+            v = min(max(best + side * step, box[0]), box[1])
+            if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
+                break  # the box ends here
+            delta, se, z = compare(v)
+            sides[side].append((v, z))
+            records.append([v, delta, se, z])
+            if z > threshold:
+                break
+    (lo, hi), b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
+    return [lo, hi], b_lo, b_hi, records
+
+
+def identifiability(bounded_below: bool, bounded_above: bool, first_gradient: float | None, span: str,
+                    threshold: float = Z_90) -> tuple[bool, str]:
+    """Whether a parameter is identifiable from its slice, and one line saying why (or why not).
+
+    Args:
+        bounded_below, bounded_above: from :func:`walk_slice`.
+        first_gradient: the loss gradient at the first iteration (exactly 0: the video does not constrain it).
+        span: how far the slice went, for the message (e.g. "+-1.0 decades").
+    """
+    if first_gradient is not None and first_gradient == 0.0:
+        return False, "the loss gradient was exactly zero: the video does not constrain it"
+    if bounded_below and bounded_above:
+        return True, f"the loss rises above its frame-to-frame noise (z > {threshold:.4g}) on both sides"
+    if not (bounded_below or bounded_above):
+        return False, f"the loss changes by less than its frame-to-frame noise over {span} (clipped to the search box)"
+    return False, f"bounded {'below' if bounded_below else 'above'} only: the loss is flat on the other side"
+
+
 def parameter_intervals(
     params: MaterialParams,
     object_names: dict[int, str],
@@ -134,33 +186,15 @@ def parameter_intervals(
             nlo, nhi = params.nu_bounds
             specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
         for what, steps, box, best in specs:
-            sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
-            records = []
-            for side in (-1, 1):
-                for step in steps:
-                    v = min(max(best + side * step, box[0]), box[1])
-                    if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
-                        break  # the box ends here
-                    trial = _with_value(params, slot, what, v)
-                    delta, se, z = paired_z(evaluate(trial), reference)
-                    sides[side].append((v, z))
-                    records.append([v, delta, se, z])
-                    if z > threshold:
-                        break
-            (lo, hi), b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
+            def compare(v: float, slot=slot, what=what) -> tuple[float, float, float]:
+                return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
+
+            (lo, hi), b_lo, b_hi, records = walk_slice(best, steps, box, compare, threshold)
             g0 = None
             if first_gradients is not None:
                 g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
-            if g0 is not None and g0 == 0.0:
-                ok, reason = False, "the loss gradient was exactly zero: the video does not constrain it"
-            elif b_lo and b_hi:
-                ok, reason = True, f"the loss rises above its frame-to-frame noise (z > {threshold}) on both sides"
-            elif not (b_lo or b_hi):
-                span = f"+-{steps[-1]}{' decades' if what == 'E' else ''}"
-                ok, reason = False, (f"the loss changes by less than its frame-to-frame noise over {span} "
-                                     "(clipped to the search box)")
-            else:
-                ok, reason = False, f"bounded {'below' if b_lo else 'above'} only: the loss is flat on the other side"
+            ok, reason = identifiability(b_lo, b_hi, g0, f"+-{steps[-1]}{' decades' if what == 'E' else ''}",
+                                         threshold)
             to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
