@@ -8,13 +8,21 @@ d_t = l_t(theta) - l_t(theta*) give
 
     Delta L = sum_t d_t,    SE = sqrt(n) std(d_t),    z = Delta L / SE   (n compared frames),
 
-a paired comparison of the two simulations over the frames. theta is excluded when z > Z; the interval is
-the connected set of values around theta* that are not excluded, its ends interpolated where z crosses Z.
-Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop at the first
+a paired comparison of the two simulations over the frames. theta is excluded when z > z_c; the interval
+is the connected set of values around theta* that are not excluded, its ends interpolated where z crosses
+z_c. Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop at the first
 excluded value or the search box. A parameter is identifiable when its interval is bounded on both sides
-within the slice; one whose first gradient was zero is not, whatever its slice. Z = 1.645 (a one-sided 90%
-level) is checked on the benchmark suite: ``endogsim bench suite`` reports how often the true value falls
-in the interval (coverage).
+within the slice; one whose first gradient was zero is not, whatever its slice.
+
+The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
+with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
+where s = sqrt(n) std(g_t) / H is the (sandwich) standard error of theta*. The level-``LEVEL`` interval
+theta* +- q s is therefore z <= q / 2, with q the two-sided quantile of Student's t with n - 1 degrees of
+freedom (the noise is estimated from n frames). For a quadratic per-frame loss with independent Gaussian
+per-frame noise this is exact (``tests/test_uncertainty.py`` measures 90% coverage); z_c = 1.645, a
+one-sided normal test of "theta is worse than theta*", gave 97-99.8% there (intervals about twice too
+wide). Frames whose errors are alike (a model error shared by the whole clip) make the interval too narrow:
+``endogsim bench suite`` reports how often the true value falls inside (coverage).
 """
 
 from __future__ import annotations
@@ -28,11 +36,11 @@ import torch
 
 from endogsim.materials.field import MaterialParams
 
-__all__ = ["Z_90", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "interval_from_slice", "walk_slice",
+__all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "critical_z", "interval_from_slice", "walk_slice",
            "identifiability", "parameter_intervals"]
 
-#: One-sided 90% normal quantile: a trial value with z above it is excluded.
-Z_90 = 1.645
+#: The intervals' level (two-sided): the probability that the true value lies inside.
+LEVEL = 0.90
 #: Slice steps away from the optimum: log10 E (decades) and nu.
 E_STEPS = (0.1, 0.3, 1.0)
 NU_STEPS = (0.02, 0.06)
@@ -53,6 +61,8 @@ class ParameterInterval:
         slice: [[value, Delta L, SE, z], ...] the trial values and their comparison with the optimum.
         first_gradient: the loss gradient with respect to this parameter at the first iteration (None when
             no iteration ran).
+        critical_z: the z above which a trial value was excluded (:func:`critical_z`; None: fewer than 2
+            compared frames, nothing excluded).
     """
 
     object_id: int
@@ -65,6 +75,7 @@ class ParameterInterval:
     reason: str
     slice: list[list[float]] = field(default_factory=list)
     first_gradient: float | None = None
+    critical_z: float | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -80,8 +91,20 @@ def paired_z(per_frame: dict[int, float], reference: dict[int, float]) -> tuple[
     return delta, se, delta / max(se, 1e-12 * max(abs(delta), 1e-30))
 
 
+def critical_z(n: int, level: float = LEVEL) -> float:
+    """The z of :func:`paired_z` above which a trial value is excluded from the ``level`` interval, for ``n``
+    compared frames: half the two-sided ``level`` quantile of Student's t with n - 1 degrees of freedom
+    (module docstring; 0.917 for 10 frames at 90%, 0.822 in the limit). inf for n < 2: one frame has no
+    frame-to-frame noise to compare with, so nothing is excluded."""
+    if n < 2:
+        return math.inf
+    from scipy.stats import t
+
+    return 0.5 * float(t.ppf(0.5 + level / 2, n - 1))
+
+
 def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, float]]], box: tuple[float, float],
-                        threshold: float = Z_90) -> tuple[list[float], bool, bool]:
+                        threshold: float) -> tuple[list[float], bool, bool]:
     """The interval around ``best`` from trial points on each side.
 
     Args:
@@ -106,7 +129,7 @@ def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, fl
 
 
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
-               compare: Callable[[float], tuple[float, float, float]], threshold: float = Z_90,
+               compare: Callable[[float], tuple[float, float, float]], threshold: float,
                ) -> tuple[list[float], bool, bool, list[list[float]]]:
     """Walk one parameter's slice outward from ``best`` and return its interval.
 
@@ -139,7 +162,7 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
 
 
 def identifiability(bounded_below: bool, bounded_above: bool, first_gradient: float | None, span: str,
-                    threshold: float = Z_90) -> tuple[bool, str]:
+                    threshold: float) -> tuple[bool, str]:
     """Whether a parameter is identifiable from its slice, and one line saying why (or why not).
 
     Args:
@@ -149,6 +172,8 @@ def identifiability(bounded_below: bool, bounded_above: bool, first_gradient: fl
     """
     if first_gradient is not None and first_gradient == 0.0:
         return False, "the loss gradient was exactly zero: the video does not constrain it"
+    if not math.isfinite(threshold):
+        return False, "fewer than 2 compared frames: no frame-to-frame noise to measure the loss against"
     if bounded_below and bounded_above:
         return True, f"the loss rises above its frame-to-frame noise (z > {threshold:.4g}) on both sides"
     if not (bounded_below or bounded_above):
@@ -163,7 +188,7 @@ def parameter_intervals(
     box_log10_E: Callable[[MaterialParams], tuple[list[float], list[float]]],
     optimise_nu: bool,
     first_gradients: dict[str, list[float]] | None = None,
-    threshold: float = Z_90,
+    level: float = LEVEL,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -174,8 +199,10 @@ def parameter_intervals(
         box_log10_E: parameters -> ([lower], [upper]) log10 E bounds per slot (upper depends on nu).
         optimise_nu: whether nu was identified (else only E gets an interval).
         first_gradients: {"log10_E": [...], "nu_raw": [...]} per slot at the first iteration.
+        level: the intervals' level (the critical z follows from it and the number of compared frames).
     """
     reference = evaluate(params)
+    threshold = critical_z(len(reference), level)
     out = []
     for slot in range(params.log10_E.shape[0]):
         oids = [o for o in params.object_ids if params.slot(o) == slot]
@@ -200,7 +227,8 @@ def parameter_intervals(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
                 identifiable=ok, reason=reason,
-                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0))
+                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
+                critical_z=threshold if math.isfinite(threshold) else None))
     return out
 
 
