@@ -146,7 +146,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
-        "stopped": result.stopped, "seconds": result.seconds,
+        "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
         "epe": ev.epe, "psnr": ev.psnr, "ssim": ev.ssim,
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
