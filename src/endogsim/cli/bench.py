@@ -159,9 +159,11 @@ def register(bench_app: typer.Typer) -> None:
         print_table(f"Discretisation convergence: motion change under a {factor}x refinement (target rms change "
                     f"<= {TARGET_RMS_CHANGE})",
                     ["scene", "particles", "grid", "substeps", "refined grid", "refined particles",
-                     "refined substeps", "rms motion (mm)", "rms change", "seconds", "refined seconds"],
+                     "refined substeps", "rms motion (mm)", "default's rms motion (mm)", "rms change", "seconds",
+                     "refined seconds"],
                     [(c["scene"], c["particles"], c["grid"], c["substeps"], c["refined_grid"], c["refined_particles"],
-                      c["refined_substeps"], c["rms_motion_mm"], c["rms_change"], c["seconds"], c["refined_seconds"])
+                      c["refined_substeps"], c["rms_motion_mm"], c["rms_motion_default_mm"], c["rms_change"],
+                      c["seconds"], c["refined_seconds"])
                      for c in res["cases"]])
         over = [c["scene"] for c in res["cases"] if not c["converged"]]
         console.print(f"{len(res['cases']) - len(over)}/{len(res['cases'])} scenes within the target"
