@@ -15,8 +15,10 @@ from endogsim.identify.uncertainty import (
     E_STEPS,
     LEVEL,
     critical_z,
+    identifiability,
     paired_z,
     parameter_intervals,
+    significant_z,
     walk_slice,
 )
 from endogsim.materials.field import MaterialField, MaterialRecord
@@ -30,13 +32,15 @@ def _quadratic(eps: np.ndarray):
 
 
 def _interval(eps: np.ndarray) -> tuple[float, list[float], bool, bool]:
-    """The optimum (the mean of the per-frame optima) and its interval, as identification computes it."""
+    """The optimum (the mean of the per-frame optima), its interval, and whether the slice was bounded and
+    identifiable on both sides, as identification computes them."""
     loss = _quadratic(eps)
     best = THETA0 + float(eps.mean())
     ref = loss(best)
-    (lo, hi), b_lo, b_hi, _ = walk_slice(best, E_STEPS, (0.0, 7.0), lambda v: paired_z(loss(v), ref),
-                                         critical_z(len(eps)))
-    return best, [lo, hi], b_lo, b_hi
+    n = len(eps)
+    sl = walk_slice(best, E_STEPS, (0.0, 7.0), lambda v: paired_z(loss(v), ref), critical_z(n), significant_z(n))
+    ok, _ = identifiability(sl, None, "+-1.0 decades", significant_z(n))
+    return best, sl.interval, all(sl.bounded), ok
 
 
 @pytest.mark.parametrize("n", [5, 12, 40])
@@ -47,9 +51,9 @@ def test_the_interval_is_the_t_interval_of_a_quadratic_loss(n):
     rng = np.random.default_rng(n)
     for _ in range(20):
         eps = rng.normal(0.0, 0.1 * math.sqrt(n), n)
-        best, (lo, hi), b_lo, b_hi = _interval(eps)
+        best, (lo, hi), bounded, _ = _interval(eps)
         half = stats.t.ppf(0.5 + LEVEL / 2, n - 1) * eps.std(ddof=1) / math.sqrt(n)
-        assert b_lo and b_hi
+        assert bounded
         assert lo == pytest.approx(best - half, abs=1e-9) and hi == pytest.approx(best + half, abs=1e-9)
         delta, se, z = paired_z(_quadratic(eps)(best + 0.2), _quadratic(eps)(best))
         assert z == pytest.approx(math.sqrt(n) * 0.2 / (2 * eps.std(ddof=1)))
@@ -65,19 +69,38 @@ def test_ninety_percent_intervals_cover_the_truth_ninety_percent_of_the_time(n):
     """
     rng = np.random.default_rng(100 + n)
     draws = 2000
-    covered = 0
+    covered = identified = 0
     for _ in range(draws):
         eps = rng.normal(0.0, 0.1 * math.sqrt(n), n)  # the optimum's standard error is 0.1 (decades)
-        _, (lo, hi), b_lo, b_hi = _interval(eps)
-        assert b_lo and b_hi  # within the slice: the ends are interpolated, not the search box
+        _, (lo, hi), bounded, ok = _interval(eps)
+        assert bounded  # within the slice: the ends are interpolated, not the search box
         covered += lo <= THETA0 <= hi
+        identified += ok
     assert covered / draws == pytest.approx(LEVEL, abs=0.025)
+    assert identified / draws > 0.99  # the loss rises well above its noise within the slice
+
+
+def test_a_loss_of_pure_noise_is_rarely_called_identifiable():
+    """Per-frame losses that do not depend on theta, each evaluation with fresh noise (10 frames), against one
+    evaluation at the optimum. A side counts as significant when one of its 3 trials has z > significant_z
+    (5% each under this null): 2.0% for both sides were the six comparisons independent; sharing the
+    optimum's evaluation correlates them, and 4.8% of 2000 draws pass (binomial sd 0.005). The bound 0.07 is
+    4 sd above that; with the interval's critical z as the test instead, 23% would pass (a fixed 1.645: 7%)."""
+    rng = np.random.default_rng(7)
+    n, draws, identified = 10, 2000, 0
+    for _ in range(draws):
+        noise = lambda theta: {t: 0.5 + 0.01 * rng.normal() for t in range(n)}  # noqa: E731
+        ref = noise(THETA0)
+        sl = walk_slice(THETA0, E_STEPS, (0.0, 7.0), lambda v: paired_z(noise(v), ref), critical_z(n), significant_z(n))
+        identified += identifiability(sl, None, "+-1.0 decades", significant_z(n))[0]
+    assert identified / draws < 0.07
 
 
 def test_critical_z():
     assert critical_z(10) == pytest.approx(0.5 * 1.8331, abs=1e-4)  # t_9, 95th percentile
     assert critical_z(100_000) == pytest.approx(0.5 * 1.6449, abs=1e-3)  # the normal limit
-    assert critical_z(1) == math.inf and critical_z(0) == math.inf
+    assert significant_z(10) == pytest.approx(1.8331, abs=1e-4)
+    assert critical_z(1) == math.inf and critical_z(0) == math.inf and significant_z(1) == math.inf
 
 
 def _field() -> MaterialField:

@@ -111,6 +111,7 @@ def identifiable_table(intervals: list[ParameterInterval]) -> dict:
         out.setdefault(iv.name, {})[iv.parameter] = {
             "identifiable": iv.identifiable, "reason": iv.reason, "interval": iv.interval, "search_box": iv.search_box,
             "best": iv.best, "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
+                                          "significant_z": iv.significant_z,
                                           "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z}
                                                     for v, d, se, z in iv.slice]}}
     return out
