@@ -57,7 +57,8 @@ def test_tables_average_over_scenes():
     assert rows2[-1][4] == pytest.approx(2 / 3) and rows2[-1][5] == pytest.approx(1 / 3)
     assert rows2[1][6] == "1/2, 0/2" and rows2[-1][6] == "2/3, 1/3" and rows2[-1][7] == pytest.approx(2.0)
     objs = t["table2_objects"]["rows"]
-    assert [(r[0], r[1]) for r in objs] == [("press", "liver"), ("two_tissues", "liver"), ("two_tissues", "gallbladder")]
+    assert [(r[0], r[1]) for r in objs] == [("press", "liver"), ("two_tissues", "liver"),
+                                            ("two_tissues", "gallbladder")]
     assert objs[1][7] == pytest.approx(1.0) and objs[1][8] == "yes" and objs[1][13] == "no"  # width in decades
     assert "E 0.67 of 3, nu 0.33 of 3, pooled 0.50" in t["table2_objects"]["note"]
     s = interval_summary(suite_objects({"press": _fake("press", 0.2, 1.0, objects=press),

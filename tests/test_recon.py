@@ -670,7 +670,8 @@ def _clocked_run(synthetic, out: Path, monkeypatch, seconds_per_call: float, bud
     from endogsim.recon import train as train_module
 
     ticks = iter(range(10**9))
-    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks) * seconds_per_call))
+    clock = types.SimpleNamespace(perf_counter=lambda: next(ticks) * seconds_per_call)
+    monkeypatch.setattr(train_module, "time", clock)
     fractions, losses = [], []
 
     def recording(self, f):

@@ -153,7 +153,8 @@ def interval_summary(objects: list[dict]) -> dict:
         "n_E": len(hits["E"]), "n_nu": len(hits["nu"]),
         "mean_width_E_decades": _mean([math.log10(o["E_interval"][1] / o["E_interval"][0])
                                        for o in objects if o["E_interval"] is not None]),
-        "mean_width_nu": _mean([o["nu_interval"][1] - o["nu_interval"][0] for o in objects if o["nu_interval"] is not None]),
+        "mean_width_nu": _mean([o["nu_interval"][1] - o["nu_interval"][0]
+                                for o in objects if o["nu_interval"] is not None]),
         "identifiable_E": sum(bool(o["E_identifiable"]) for o in objects),
         "identifiable_nu": sum(bool(o["nu_identifiable"]) for o in objects),
     }

@@ -129,7 +129,8 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
         "report": state["stages"].get("report", {}).get("report"),
         "stage_seconds": {k: v.get("seconds") for k, v in state["stages"].items()},
         "iterations": {k: state["stages"][k].get("iterations") for k in ("reconstruct", "identify")},
-        "stopped_by_budget": {k: bool(state["stages"][k].get("stopped_by_budget")) for k in ("reconstruct", "identify")},
+        "stopped_by_budget": {k: bool(state["stages"][k].get("stopped_by_budget"))
+                              for k in ("reconstruct", "identify")},
     }
     write_json_atomic(out / "summary.json", summary)
     return summary
