@@ -8,25 +8,65 @@ import sys
 
 import pytest
 
-from endogsim.bench.suite import RUNS, run_suite, suite_tables
+from endogsim.bench.suite import (
+    RUNS,
+    interval_summary,
+    run_suite,
+    suite_objects,
+    suite_tables,
+)
 from endogsim.errors import EndoGSimError
 
 SMALL = dict(iters=1, frames=3)  # tiny, 3 frames, one iteration: the whole machinery in well under a minute
 
 
-def _fake(scene: str, re: float, epe: float, with_global: bool = False, fid=None) -> dict:
+def _obj(E: float, nu: float, E_true: float = 1e3, nu_true: float = 0.4, E_iv=None, nu_iv=None,
+         E_ok: bool | None = None, nu_ok: bool | None = None) -> dict:
+    """An :func:`object_results` record."""
+    return {"E": E, "nu": nu, "source": "identified", "E_true": E_true, "nu_true": nu_true,
+            "e_rel_error": abs(E / E_true - 1), "E_interval": E_iv, "nu_interval": nu_iv,
+            "E_identifiable": E_ok, "nu_identifiable": nu_ok}
+
+
+def _fake(scene: str, re: float, epe: float, with_global: bool = False, fid=None, objects=None) -> dict:
     runs = {f"{i}_{'on' if on else 'off'}": {"re_mean": re * (0.5 if on else 1), "epe": epe, "fid": fid,
-                                             "materials": {"a": {"E": 1e3, "nu": 0.4}}} for i, on in RUNS}
+                                             "seconds_per_iteration": 2.0 if on else None,
+                                             "materials": {"a": _obj(1e3, 0.4)}} for i, on in RUNS}
+    if objects is not None:
+        runs["prior_on"]["materials"] = objects
     if with_global:
-        runs["global_on"] = {"re_mean": 2 * re, "epe": 2 * epe, "fid": None, "materials": {"a": {"E": 2e3, "nu": 0.3}}}
+        runs["global_on"] = {"re_mean": 2 * re, "epe": 2 * epe, "fid": None, "materials": {"a": _obj(2e3, 0.3)}}
     return {"scene": scene, "runs": runs}
 
 
 def test_tables_average_over_scenes():
-    t = suite_tables({"press": _fake("press", 0.2, 1.0), "two_tissues": _fake("two_tissues", 0.4, 3.0, True)})
+    # press: E 1.2x (inside [900, 1500] Pa), nu outside; two_tissues: liver inside both, gallbladder inside neither
+    press = {"liver": _obj(1.2e3, 0.45, 1e3, 0.4, [900.0, 1500.0], [0.42, 0.47], True, True)}
+    two = {"liver": _obj(2.5e3, 0.41, 3e3, 0.4, [1e3, 1e4], [0.3, 0.45], True, False),
+           "gallbladder": _obj(4.5e3, 0.3, 9e3, 0.4, [4e3, 5e3], [0.25, 0.35], False, False)}
+    t = suite_tables({"press": _fake("press", 0.2, 1.0, objects=press),
+                      "two_tissues": _fake("two_tissues", 0.4, 3.0, True, objects=two)})
     rows2 = t["table2"]["rows"]
-    assert [r[0] for r in rows2] == ["press", "two_tissues", "average"]
+    assert [r[0] for r in rows2] == ["press", "two_tissues", "suite"]
     assert rows2[-1][1] == pytest.approx(0.15) and rows2[-1][2] == pytest.approx(2.0)
+    # |E/E_true - 1|: press 0.2; two_tissues 1/6 and 0.5 (median 1/3); the suite's median over 3 objects 0.2
+    assert rows2[0][3] == pytest.approx(0.2) and rows2[1][3] == pytest.approx(1 / 3)
+    assert rows2[-1][3] == pytest.approx(0.2)
+    # coverage: E inside for press and liver, nu inside only for liver
+    assert rows2[0][4:6] == [1.0, 0.0] and rows2[1][4:6] == [0.5, 0.5]
+    assert rows2[-1][4] == pytest.approx(2 / 3) and rows2[-1][5] == pytest.approx(1 / 3)
+    assert rows2[1][6] == "1/2, 0/2" and rows2[-1][6] == "2/3, 1/3" and rows2[-1][7] == pytest.approx(2.0)
+    objs = t["table2_objects"]["rows"]
+    assert [(r[0], r[1]) for r in objs] == [("press", "liver"), ("two_tissues", "liver"),
+                                            ("two_tissues", "gallbladder")]
+    assert objs[1][7] == pytest.approx(1.0) and objs[1][8] == "yes" and objs[1][13] == "no"  # width in decades
+    assert "E 0.67 of 3, nu 0.33 of 3, pooled 0.50" in t["table2_objects"]["note"]
+    s = interval_summary(suite_objects({"press": _fake("press", 0.2, 1.0, objects=press),
+                                        "two_tissues": _fake("two_tissues", 0.4, 3.0, objects=two)}))
+    assert s["coverage"] == pytest.approx(0.5) and s["n_E"] == s["n_nu"] == 3 and s["objects"] == 3
+    assert s["mean_width_E_decades"] == pytest.approx((math.log10(1500 / 900) + 1 + math.log10(5 / 4)) / 3)
+    assert s["mean_width_nu"] == pytest.approx((0.05 + 0.15 + 0.1) / 3)
+    assert s["identifiable_E"] == 2 and s["identifiable_nu"] == 1
     rows3 = {(r[0], r[1]): r for r in t["table3"]["rows"]}
     assert rows3[("manual", "off")][2] == pytest.approx(0.3) and rows3[("prior", "on")][2] == pytest.approx(0.15)
     assert all(r[4] == "n/a" for r in t["table3"]["rows"])  # no FID without weights
@@ -34,6 +74,8 @@ def test_tables_average_over_scenes():
     assert [r[0] for r in abl] == ["object-wise material field", "one global material"] and abl[1][1] == pytest.approx(0.8)
     t = suite_tables({"press": _fake("press", 0.2, 1.0, fid=12.0)})
     assert t["table3"]["rows"][0][4] == pytest.approx(12.0) and "not run" in t["ablation"]["note"]
+    # no intervals measured (optimisation off): nothing is claimed about coverage or identifiability
+    assert math.isnan(t["table2"]["rows"][0][4]) and t["table2"]["rows"][0][6] == "-, -"
 
 
 def test_clear_errors(tmp_path, monkeypatch):
@@ -49,10 +91,29 @@ def _check(res: dict) -> None:
     assert set(runs) == {"manual_off", "manual_on", "prior_off", "prior_on"}
     for r in runs.values():
         assert math.isfinite(r["re_mean"]) and math.isfinite(r["epe"]) and r["fid"] is None
+        assert math.isfinite(r["e_rel_error_median"])
     assert runs["prior_off"]["iterations"] == 0 and runs["prior_on"]["iterations"] >= 1
+    assert runs["prior_off"]["seconds_per_iteration"] is None and runs["prior_on"]["seconds_per_iteration"] > 0
+    # |E/E_true - 1| against tiny's ground truth (2500 Pa, nu 0.4); intervals only in the full method's run
+    tissue = runs["prior_on"]["materials"]["tissue"]
+    assert tissue["E_true"] == 2500.0 and tissue["nu_true"] == 0.4
+    assert tissue["e_rel_error"] == pytest.approx(abs(tissue["E"] / 2500.0 - 1))
+    assert tissue["e_rel_error"] == pytest.approx(runs["prior_on"]["e_rel_error_median"])
+    lo, hi = tissue["E_interval"]
+    assert 0 < lo <= hi and isinstance(tissue["E_identifiable"], bool) and isinstance(tissue["nu_identifiable"], bool)
+    if tissue["E_identifiable"]:
+        assert lo <= tissue["E"] <= hi  # an identified value lies in its interval
+    assert len(tissue["nu_interval"]) == 2
+    assert runs["manual_on"]["materials"]["tissue"]["E_interval"] is None
     t = res["tables"]
     assert t["table2"]["rows"][0][0] == "tiny" and t["table2"]["rows"][0][1] == pytest.approx(runs["prior_on"]["re_mean"])
+    assert t["table2"]["rows"][0][3] == pytest.approx(tissue["e_rel_error"])
+    assert t["table2"]["rows"][0][4] == float(lo <= 2500.0 <= hi)
+    assert t["table2_objects"]["rows"][0][:2] == ["tiny", "tissue"]
     assert len(t["table3"]["rows"]) == 4
+    s = res["summary"]
+    assert s["objects"] == 1 and s["n_E"] == 1 and s["coverage_E"] in (0.0, 1.0)
+    assert s["mean_width_E_decades"] == pytest.approx(math.log10(hi / lo))
     json.dumps(res)  # --json writes exactly this
 
 
@@ -84,5 +145,5 @@ def test_cli_prints_the_tables(scenes_dir, tmp_path):
     r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--iters", "0", "--frames", "3",
                                  "--scenes-dir", str(scenes_dir), "--work-dir", str(tmp_path / "w"), "--json", str(out)])
     assert r.exit_code == 0, r.output
-    assert "Table 2" in r.output and "Table 3" in r.output and "ablation" in r.output
+    assert "Table 2" in r.output and "Table 3" in r.output and "ablation" in r.output and "per object" in r.output
     assert json.loads(out.read_text())["settings"]["scenes"] == ["tiny"]

@@ -1,12 +1,23 @@
-"""``endogsim demo``: the preview render runs from the CLI and writes a playable video and PNG frames."""
+"""``endogsim demo``: the preview render runs from the CLI and writes a playable video and PNG frames; the
+demo is a function of its seed (same seed, same materials; another seed, another scene)."""
 
 from __future__ import annotations
 
+import json
+
 import imageio.v3 as iio
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from endogsim.cli.main import app
+from endogsim.errors import DataError
+from endogsim.pipeline.demo import DemoConfig, run_demo, synthesize_observed
+
+# The demo on 4 frames of tiny with 12 reconstruction iterations and 1 identification iteration (its 90%
+# intervals included): ~14 s a run on one CPU core.
+REDUCED = dict(frames=4, recon={"resolution_scale": 1.0, "iters": 12, "track_warmup_iters": 20},
+               identify={"iters": 1})
 
 
 def test_demo_writes_video_and_frames(tmp_path):
@@ -26,3 +37,52 @@ def test_demo_writes_video_and_frames(tmp_path):
 def test_demo_rejects_bad_options(tmp_path):
     res = CliRunner().invoke(app, ["demo", "--preview", "--out", str(tmp_path), "--preview-frames", "1"])
     assert res.exit_code != 0 and "--preview-frames" in res.output
+
+
+@pytest.fixture(scope="module")
+def seed0_twice(tmp_path_factory):
+    """Two reduced demos with seed 0, each in its own folder."""
+    root = tmp_path_factory.mktemp("demo")
+    return [(root / f"run{k}", run_demo(root / f"run{k}", DemoConfig(**REDUCED))) for k in range(2)]
+
+
+def _identify_record(out) -> tuple:
+    """What identification computed (no paths, no timings): materials, history and the interval evidence."""
+    d = out / "run" / "identify"
+    mats = json.loads((d / "materials_identified.json").read_text())["objects"]
+    hist = [{k: v for k, v in h.items() if k != "seconds"} for h in json.loads((d / "history.json").read_text())]
+    m = json.loads((d / "metrics.json").read_text())
+    return mats, hist, m["identifiable"], m["intervals"], m["re_mean"], m["epe"]
+
+
+def test_the_same_seed_gives_the_same_materials(seed0_twice):
+    (a, sa), (b, sb) = seed0_twice
+    assert sa["seed"] == sb["seed"] == 0
+    assert sa["materials"] == sb["materials"] and sa["materials"][0]["E_identified"] > 0
+    assert sa["iterations"] == sb["iterations"] == {"reconstruct": 12, "identify": 1}
+    assert sa["stopped_by_budget"] == sb["stopped_by_budget"] == {"reconstruct": False, "identify": False}
+    assert _identify_record(a) == _identify_record(b)
+    assert sa["recon_psnr_masked"] == sb["recon_psnr_masked"]
+    assert (a / "scene_truth" / "images").is_dir() and (a / "render.mp4").is_file()
+
+
+def test_another_seed_gives_another_scene(seed0_twice, tmp_path):
+    (a, _), _ = seed0_twice
+    other = synthesize_observed(tmp_path, DemoConfig(**REDUCED, seed=1))  # the demo's first step
+    spec0 = json.loads((a / "scene_truth" / "scene.json").read_text())
+    spec1 = json.loads((other / "scene.json").read_text())
+    assert (spec0["seed"], spec1["seed"]) == (0, 1)
+    assert spec0["objects"] == spec1["objects"] and spec0["frames"] == spec1["frames"] == 4  # same suite scene
+    im0 = sorted((a / "scene_truth" / "images").glob("*.png"))
+    im1 = sorted((other / "images").glob("*.png"))
+    assert len(im0) == len(im1) == 4
+    diff = np.abs(iio.imread(im0[0]).astype(float) - iio.imread(im1[0]).astype(float)).mean()
+    assert diff > 2.0, diff  # other textures (8-bit levels)
+
+
+def test_a_folder_of_another_seed_is_refused(seed0_twice):
+    (a, _), _ = seed0_twice
+    with pytest.raises(DataError, match="seed 0, not 'tiny' with seed 1"):
+        run_demo(a, DemoConfig(**REDUCED, seed=1))
+    res = CliRunner().invoke(app, ["demo", "--out", str(a), "--seed", "2"])  # --seed reaches the demo
+    assert res.exit_code == 2 and "with seed 2" in res.output

@@ -12,10 +12,10 @@ import torch
 from endogsim.errors import DataError, SimulationError
 from endogsim.identify import IdentifyConfig, identify
 from endogsim.identify.optimize import project_into_search_box, stable_log10_E_max
-from endogsim.physics import capsule_collider_points
-from endogsim.scene.folder import load_sim_scene
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField, MaterialRecord
+from endogsim.physics import capsule_collider_points
+from endogsim.scene.folder import load_sim_scene
 
 FRAMES = 10  # the whole ``tiny`` clip: its first frames alone barely depend on E (the probe drives them)
 
@@ -157,6 +157,19 @@ def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
         identify(problem, init, fast_config(loss="render"), run_dir=tmp_path)
 
 
+def test_a_time_budget_only_stops_the_run(run3, problem, tmp_path):
+    """A budget spent after the first iteration stops the run there; that iteration is the unstopped run's
+    first (the learning-rate schedule follows ``iters``, not the clock), and the metrics say it was stopped."""
+    res_a, _ = run3
+    res = identify(problem, field_from_truth(problem, 2.0), fast_config(time_budget=1e-9), run_dir=tmp_path)
+    assert res.stopped == "time_budget" and res.iterations == 1
+    assert res.history[0]["lr"] == res_a.history[0]["lr"]
+    assert res.history[0]["loss"] == pytest.approx(res_a.history[0]["loss"], rel=1e-6)
+    assert res.history[0]["E"]["1"] == pytest.approx(res_a.history[0]["E"]["1"], rel=1e-9)
+    m = write_outputs(tmp_path, problem, res, fast_config(time_budget=1e-9), init_name="test", video=False)
+    assert m["stopped_by_budget"] is True
+
+
 def test_unstable_request_is_refused_with_the_limit(problem):
     with pytest.raises(SimulationError, match="needs more than 400 substeps per frame"):
         identify(problem, field_from_truth(problem, E_override=1e8), fast_config(iters=1), strict=True)
@@ -212,6 +225,7 @@ def test_outputs_written(problem, run3, tmp_path):
     for k in ("re_mean", "re_E", "re_nu", "re_G", "re_K", "epe", "psnr", "ssim", "seconds", "iterations"):
         assert k in disk and math.isfinite(disk[k]), k
     assert disk["iterations"] == 3 and "tissue" in disk["re_objects"]
+    assert disk["stopped"] == "iters" and disk["stopped_by_budget"] is False
     ident = MaterialField.load(run_dir / "materials_identified.json")
     assert ident[1].E == pytest.approx(res.field[1].E)
     assert m["epe"] == disk["epe"]

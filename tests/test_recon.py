@@ -24,13 +24,13 @@ from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 from endogsim.gaussians.ply import read_ply
 from endogsim.gaussians.render import render_gaussians
 from endogsim.recon.config import ReconConfig, load_config
+from endogsim.recon.data import prepare_scene
 from endogsim.recon.deformation import DeformationConfig, DeformationField, _Heads
 from endogsim.recon.hexplane import HexPlane
+from endogsim.recon.init import initial_gaussians
 from endogsim.recon.model import ReconResult, load_reconstruction
 from endogsim.recon.params import GaussianParams
 from endogsim.recon.tools import ToolMotion, axis_angle_to_quat
-from endogsim.recon.data import prepare_scene
-from endogsim.recon.init import initial_gaussians
 from endogsim.recon.train import Interrupted, Trainer, reconstruct
 
 # ----------------------------------------------------------------------------------------------- synthetic data
@@ -441,7 +441,7 @@ def test_fast_reconstruction_quality_and_outputs(fast_run):
     assert isinstance(m, ReconResult) and m.metrics_path == out / "metrics.json"
     assert m.frame0_ply.is_file() and m.tool_trajectories.is_file() and m.objects.is_file()
     assert ReconResult.from_run(out).metrics["num_gaussians"] == m["num_gaussians"]
-    assert on_disk["ssim"] == on_disk["ssim_masked"] and not on_disk["stopped_by_time_budget"]
+    assert on_disk["ssim"] == on_disk["ssim_masked"] and not on_disk["stopped_by_budget"]
     traj = json.loads((out / "tool_trajectories.json").read_text())["tools"]
     M = np.array(traj["1"]["transforms"])
     assert M.shape == (6, 4, 4)
@@ -513,7 +513,7 @@ def test_time_budget_stops_training_and_exports(synthetic, tmp_path):
     m = reconstruct(synthetic, tmp_path / "run", ReconConfig(**{**FAST, "time_budget_s": 1e-6}), resume=False)
     # The point-track warm-up counts as training time, so a tiny budget is spent before the first step;
     # the run must still export a usable model.
-    assert m["stopped_by_time_budget"] and m["iterations"] <= 1
+    assert m["stopped_by_budget"] and m["iterations"] <= 1
     assert m.frame0_ply.is_file() and m.metrics_path.is_file()
 
 
@@ -659,19 +659,60 @@ def test_reconstruction_with_camera_motion_exports_poses(synthetic, tmp_path):
     assert not fixed["camera_motion"] and "psnr_masked_interpolated_pose" not in fixed
 
 
-def test_time_budget_drives_the_schedule(synthetic, tmp_path):
-    """With a time budget the schedules follow the larger of the iteration and time fractions."""
+_SET_LRS = Trainer._set_lrs
+
+
+def _clocked_run(synthetic, out: Path, monkeypatch, seconds_per_call: float, budget: float | None):
+    """A short reconstruction whose clock advances ``seconds_per_call`` at every reading (a slow or a fast
+    machine); returns the metrics, the progress each iteration's schedule ran on, and the losses."""
+    import types
+
+    from endogsim.recon import train as train_module
+
+    ticks = iter(range(10**9))
+    clock = types.SimpleNamespace(perf_counter=lambda: next(ticks) * seconds_per_call)
+    monkeypatch.setattr(train_module, "time", clock)
+    fractions, losses = [], []
+
+    def recording(self, f):
+        fractions.append(f)
+        return _SET_LRS(self, f)
+
+    monkeypatch.setattr(Trainer, "_set_lrs", recording)
+    cfg = ReconConfig(**{**FAST, "iters": 12, "densify_every": 4, "track_warmup_iters": 20, "coarse_fraction": 0.25,
+                         "camera_motion": "on", "time_budget_s": budget})
+    m = reconstruct(synthetic, out, cfg, resume=False, progress=lambda it, n, info: losses.append(info["loss"]))
+    return m, fractions, losses
+
+
+def test_a_time_budget_stops_a_run_but_never_changes_what_it_computes(synthetic, tmp_path, monkeypatch):
+    """The schedules (coarse/fine switch, learning-rate decay, densification) run on iterations only: a slow
+    machine stopped by its budget did exactly what a fast one did up to the stop, and a budget that does not
+    stop a run leaves its output bit for bit as without one."""
+    # every clock reading 1 s apart: the priors and warm-up "take" 1 s, each iteration 1 s, budget 5.5 s
+    slow, f_slow, l_slow = _clocked_run(synthetic, tmp_path / "slow", monkeypatch, 1.0, 5.5)
+    fast, f_fast, l_fast = _clocked_run(synthetic, tmp_path / "fast", monkeypatch, 1e-9, 5.5)
+    free, f_free, l_free = _clocked_run(synthetic, tmp_path / "free", monkeypatch, 1.0, None)
+    assert slow["stopped_by_budget"] and slow["iterations"] == 5
+    assert not fast["stopped_by_budget"] and fast["iterations"] == 12 and not free["stopped_by_budget"]
+    assert f_fast == [k / 12 for k in range(12)]  # progress = iterations done / iters, whatever the clock
+    assert f_slow == f_fast[:5] and l_slow == l_fast[:5]  # the same iterations, bit for bit, up to the stop
+    assert f_free == f_fast and l_free == l_fast
+    a, b = read_ply(tmp_path / "fast" / "canonical.ply"), read_ply(tmp_path / "free" / "canonical.ply")
+    assert torch.equal(a.means, b.means) and torch.equal(a.sh, b.sh)
+    assert fast["psnr_masked"] == free["psnr_masked"]
+
+
+def test_the_schedules_end_at_their_final_values(synthetic, tmp_path):
     cfg = ReconConfig(**{**FAST, "iters": 1000, "time_budget_s": 100.0, "coarse_fraction": 0.1, "camera_motion": "on"})
     tr = Trainer(prepare_scene(synthetic, cfg), cfg, tmp_path)
     tr.init_fresh()
-    # only the priors and the point-track warm-up have run: progress is their share of the budget
-    assert tr.iteration == 0 and tr.elapsed > 0
-    assert tr.progress() == pytest.approx(min(tr.elapsed / 100.0, 1.0))
-    tr.elapsed = 50.0
-    assert tr.progress() == pytest.approx(0.5)
+    assert tr.iteration == 0 and tr.elapsed > 0 and tr.progress() == 0.0
+    tr.elapsed = 99.0  # the clock never moves the schedule
+    assert tr.progress() == 0.0
     tr.iteration = 800
     assert tr.progress() == pytest.approx(0.8)
-    tr.elapsed, tr.iteration = 100.0, 10
+    tr.iteration = 1000
     tr._set_lrs(tr.progress())
     lr = {g["name"]: g["lr"] for g in tr.tissue.optimizer.param_groups}["means"]
     assert lr == pytest.approx(cfg.lr_means_final * tr.extent)

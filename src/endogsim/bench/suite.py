@@ -4,9 +4,18 @@ For every suite scene (``endogsim/data/benchmark_suite.json``; ``tiny`` is a tes
 default list) :func:`run_scene` synthesizes the scene once (cached under the scenes folder), then identifies
 its materials from the ``manual`` and the ``prior`` initialisation, each with optimisation off (iters 0:
 the initial guess scored) and on; on ``two_tissues`` it adds one run with a single global material.
+Only the full method's run (``prior_on``) measures the 90% intervals and identifiability of every parameter
+(:mod:`endogsim.identify.uncertainty`, about ten forward simulations per object); the others skip them.
 The tables:
 
-  Table 2  RE / EPE per scene and their average (prior initialisation, optimisation on: the full method)
+  Table 2  per scene (prior initialisation, optimisation on: the full method): RE, EPE, |E/E_true - 1|
+           (median over the scene's objects), the share of the scene's objects whose true E and true nu lie
+           in their 90% interval, how many are identifiable, and seconds per iteration; the last row is the
+           suite (RE, EPE and seconds per iteration averaged over the scenes as in the paper; the others over
+           every deformable object of the suite)
+  Table 2, per object: identified and true E and nu, |E/E_true - 1|, the 90% intervals, their widths and
+           the identifiable flags; its note gives the suite's interval coverage (E, nu and both pooled) and
+           mean widths (decades of E)
   Table 3  initialisation x optimisation: RE / EPE / FID averaged over the scenes (FID only with a local
            Inception weights file, else "n/a")
   Ablation object-wise material field vs one global material on ``two_tissues``
@@ -26,7 +35,7 @@ from pathlib import Path
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.errors import EndoGSimError
 
-__all__ = ["run_scene", "run_suite", "suite_tables"]
+__all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects"]
 
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
@@ -36,8 +45,6 @@ def _default_scenes() -> list[str]:
     from endogsim.synth.suite import suite_scene_names
 
     return [n for n in suite_scene_names() if n != "tiny"]
-
-
 
 
 def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = 30,
@@ -56,8 +63,9 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         fid_weights: local Inception weights; FID of every run's simulated vs observed frames.
         threads: torch threads in this process (Ray tasks use 1 so parallel scenes do not oversubscribe).
     Returns:
-        {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, epe, psnr, ssim, fid, seconds, materials}},
-        "wall_seconds"}
+        {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
+        psnr, ssim, fid, seconds, iterations, seconds_per_iteration, stopped, materials}}, "wall_seconds"};
+        ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
     """
     import torch
 
@@ -79,15 +87,77 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     plan = [(f"{init}_{'on' if on else 'off'}", init, on, False) for init, on in RUNS]
     if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
         plan.append(("global_on", "prior", True, True))
+    truth = {o.name: (o.E, o.nu) for o in problem.spec.objects if not o.rigid and o.has_material}
     runs = {}
     for key, init, on, glob in plan:
-        cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob)
+        cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
+                             intervals=key == "prior_on")
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
-        rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "seconds", "iterations")}
-        rec["materials"] = {n: {"E": v["E"], "nu": v["nu"]} for n, v in m["materials"].items() if not v["rigid"]}
+        rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
+                                               "epe", "psnr", "ssim", "seconds", "iterations")}
+        rec["seconds_per_iteration"] = m["seconds"] / m["iterations"] if m.get("iterations") else None
+        rec["stopped"] = m.get("stopped")
+        rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
         runs[key] = rec
     return {"scene": name, "folder": str(folder), "runs": runs, "wall_seconds": time.perf_counter() - t0}
+
+
+def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict[str, dict]:
+    """Per deformable object of a run's ``metrics.json``: what was identified against the truth.
+
+    Args:
+        metrics: :func:`endogsim.identify.run_identify`'s metrics.
+        truth: {object name: (E Pa, nu)} of the ground truth.
+    Returns:
+        {name: {"E", "nu" (identified; Pa), "source", "E_true", "nu_true", "e_rel_error" (|E/E_true - 1|),
+        "E_interval" ([lo, hi] Pa), "nu_interval", "E_identifiable", "nu_identifiable"}}; None where the run
+        did not measure it (no truth, intervals off or no iteration run).
+    """
+    out = {}
+    for name, v in metrics["materials"].items():
+        if v["rigid"]:
+            continue
+        iv = metrics.get("intervals", {}).get(name, {})
+        ok = metrics.get("identifiable", {}).get(name, {})
+        E_true, nu_true = truth.get(name, (None, None))
+        out[name] = {"E": v["E"], "nu": v["nu"], "source": v.get("source"), "E_true": E_true, "nu_true": nu_true,
+                     "e_rel_error": metrics.get("re_objects", {}).get(name, {}).get("e_rel_error"),
+                     "E_interval": iv.get("E"), "nu_interval": iv.get("nu"),
+                     "E_identifiable": ok.get("E", {}).get("identifiable"),
+                     "nu_identifiable": ok.get("nu", {}).get("identifiable")}
+    return out
+
+
+def interval_summary(objects: list[dict]) -> dict:
+    """Coverage and width of the 90% intervals over ``objects`` (records of :func:`object_results`).
+
+    Returns:
+        {"objects", "e_rel_error_median", "coverage_E", "coverage_nu", "coverage" (E and nu intervals
+        pooled), "n_E", "n_nu" (intervals measured with a truth to check), "mean_width_E_decades",
+        "mean_width_nu", "identifiable_E", "identifiable_nu" (counts)}; NaN where nothing was measured.
+    """
+    import statistics
+
+    def inside(o: dict, what: str) -> bool | None:
+        iv, true = o[f"{what}_interval"], o[f"{what}_true"]
+        return None if iv is None or true is None else bool(iv[0] <= true <= iv[1])
+
+    hits = {w: [h for h in (inside(o, w) for o in objects) if h is not None] for w in ("E", "nu")}
+    frac = lambda xs: sum(xs) / len(xs) if xs else math.nan  # noqa: E731
+    errs = [o["e_rel_error"] for o in objects if o["e_rel_error"] is not None]
+    return {
+        "objects": len(objects),
+        "e_rel_error_median": statistics.median(errs) if errs else math.nan,
+        "coverage_E": frac(hits["E"]), "coverage_nu": frac(hits["nu"]), "coverage": frac(hits["E"] + hits["nu"]),
+        "n_E": len(hits["E"]), "n_nu": len(hits["nu"]),
+        "mean_width_E_decades": _mean([math.log10(o["E_interval"][1] / o["E_interval"][0])
+                                       for o in objects if o["E_interval"] is not None]),
+        "mean_width_nu": _mean([o["nu_interval"][1] - o["nu_interval"][0]
+                                for o in objects if o["nu_interval"] is not None]),
+        "identifiable_E": sum(bool(o["E_identifiable"]) for o in objects),
+        "identifiable_nu": sum(bool(o["nu_identifiable"]) for o in objects),
+    }
 
 
 def _run_fid(problem, run_dir: Path, net) -> float:
@@ -145,7 +215,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         threads: torch threads of the in-process path (Ray tasks always use 1). On a CPU shared with other
             work, 1 can be several times faster than torch's default pool.
     Returns:
-        {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "wall_seconds"}
+        {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
+        interval_summary(...) over the suite's objects (full method), "wall_seconds"}
     """
     from endogsim.synth.suite import suite_scene_names
 
@@ -174,7 +245,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights)},
-            "scenes": per_scene, "tables": suite_tables(per_scene), "wall_seconds": time.perf_counter() - t0}
+            "scenes": per_scene, "tables": suite_tables(per_scene),
+            "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 
 
 def _mean(vals: list[float]) -> float:
@@ -182,12 +254,53 @@ def _mean(vals: list[float]) -> float:
     return sum(vals) / len(vals) if vals else math.nan
 
 
+def suite_objects(per_scene: dict[str, dict]) -> list[dict]:
+    """Every deformable object of the suite as the full method (``prior_on``) identified it
+    (:func:`object_results` records)."""
+    return [o for r in per_scene.values() for o in r["runs"]["prior_on"]["materials"].values()]
+
+
+def _interval_text(iv: list[float] | None, spec: str) -> tuple:
+    return ("-", "-") if iv is None else (format(iv[0], spec), format(iv[1], spec))
+
+
+def _flag(v: bool | None) -> str:
+    return "-" if v is None else ("yes" if v else "no")
+
+
+def _identifiable_text(objs: list[dict]) -> str:
+    """"k/n, k'/n": identifiable E and nu among the objects where it was measured ("-": nowhere)."""
+    parts = []
+    for w in ("E", "nu"):
+        flags = [o[f"{w}_identifiable"] for o in objs if o[f"{w}_identifiable"] is not None]
+        parts.append(f"{sum(flags)}/{len(flags)}" if flags else "-")
+    return ", ".join(parts)
+
+
 def suite_tables(per_scene: dict[str, dict]) -> dict:
-    """Table 2, Table 3 and the material-field ablation from :func:`run_scene` results."""
+    """Table 2, its per-object intervals, Table 3 and the material-field ablation from :func:`run_scene`
+    results."""
     names = list(per_scene)
-    rows2 = [[n, per_scene[n]["runs"]["prior_on"]["re_mean"], per_scene[n]["runs"]["prior_on"]["epe"]] for n in names]
+    full = {n: per_scene[n]["runs"]["prior_on"] for n in names}
+    rows2, rows_obj = [], []
+    for n in names:
+        r, objs = full[n], list(full[n]["materials"].values())
+        sm = interval_summary(objs)
+        rows2.append([n, r["re_mean"], r["epe"], sm["e_rel_error_median"], sm["coverage_E"], sm["coverage_nu"],
+                      _identifiable_text(objs), r.get("seconds_per_iteration")])
+        for obj, o in full[n]["materials"].items():
+            width = None if o["E_interval"] is None else math.log10(o["E_interval"][1] / o["E_interval"][0])
+            rows_obj.append([n, obj, o["E_true"], o["E"], o["e_rel_error"], *_interval_text(o["E_interval"], ".4g"),
+                             width, _flag(o["E_identifiable"]), o["nu_true"], o["nu"],
+                             *_interval_text(o["nu_interval"], ".3f"), _flag(o["nu_identifiable"])])
+    summary = interval_summary(suite_objects(per_scene))
     if rows2:
-        rows2.append(["average", _mean([r[1] for r in rows2]), _mean([r[2] for r in rows2])])
+        rows2.append(["suite", _mean([r[1] for r in rows2]), _mean([r[2] for r in rows2]),
+                      summary["e_rel_error_median"], summary["coverage_E"], summary["coverage_nu"],
+                      _identifiable_text(suite_objects(per_scene)), _mean([r[7] for r in rows2])])
+    cover = (f"true value inside its 90% interval: E {summary['coverage_E']:.2f} of {summary['n_E']}, nu "
+             f"{summary['coverage_nu']:.2f} of {summary['n_nu']}, pooled {summary['coverage']:.2f} (nominal 0.90); "
+             f"mean width: E {summary['mean_width_E_decades']:.3g} decades, nu {summary['mean_width_nu']:.3g}")
     rows3 = []
     for init, on in RUNS:
         key = f"{init}_{'on' if on else 'off'}"
@@ -208,7 +321,16 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
             abl["rows"].append([label, r["re_mean"], r["epe"], mats])
     return {
         "table2": {"title": "Table 2: identification per scene (prior init, optimisation on)",
-                   "columns": ["scene", "RE", "EPE (px)"], "rows": rows2},
+                   "columns": ["scene", "RE", "EPE (px)", "|E/E_true-1| (median)", "E in 90%", "nu in 90%",
+                               "identifiable (E, nu)", "s/iter"], "rows": rows2,
+                   "note": "suite row: RE, EPE and s/iter averaged over the scenes, the other columns over every "
+                           "deformable object; 'in 90%': share of the objects whose true value lies in its 90% "
+                           "interval"},
+        "table2_objects": {"title": "Table 2 per object: identified vs true materials and 90% intervals",
+                           "columns": ["scene", "object", "E true (Pa)", "E (Pa)", "|E/E_true-1|", "E 90% lo (Pa)",
+                                       "E 90% hi (Pa)", "E width (decades)", "E identifiable", "nu true", "nu",
+                                       "nu 90% lo", "nu 90% hi", "nu identifiable"],
+                           "rows": rows_obj, "note": cover},
         "table3": {"title": "Table 3: initialisation x optimisation (mean over scenes)",
                    "columns": ["init", "optimisation", "RE", "EPE (px)", "FID"], "rows": rows3},
         "ablation": abl,

@@ -1,6 +1,6 @@
 """``endogsim bench ...``: the benchmark commands. Each prints a table and, with ``--json``, writes it.
 
-The measurements live in :mod:`endogsim.bench` (render, mpm, identify, suite); this module only parses the
+The measurements live in :mod:`endogsim.bench` (render, mpm, identify, suite, convergence); this module only parses the
 options, shows progress and prints.
 """
 
@@ -17,7 +17,7 @@ from endogsim.io.atomic import write_json_atomic
 
 
 def register(bench_app: typer.Typer) -> None:
-    """Add ``render``, ``mpm``, ``identify`` and ``suite`` to the ``bench`` sub-app."""
+    """Add ``render``, ``mpm``, ``identify``, ``suite`` and ``convergence`` to the ``bench`` sub-app."""
 
     @bench_app.command("render")
     @user_errors
@@ -133,6 +133,41 @@ def register(bench_app: typer.Typer) -> None:
             if t.get("note"):
                 console.print(f"  ({t['note']})")
         console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'})")
+        if json_out is not None:
+            write_json_atomic(json_out, res)
+            console.print(f"wrote {json_out}")
+
+    @bench_app.command("convergence")
+    @user_errors
+    def bench_convergence(
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Also write {\"cases\": [...], \"settings\"} here."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all)."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Simulate only the first N frames (default: "
+                                             "each scene's)."),
+        factor: int = typer.Option(2, "--factor", help="Refinement factor (grid x factor, particle spacing / "
+                                   "factor, substeps x factor at least)."),
+    ) -> None:
+        """Is identification's discretisation converged? Each scene's ground-truth simulation at identification's
+        grid, particles and substeps vs refined 2x: the RMS change of the tissue's motion (target <= 0.05)."""
+        from endogsim.bench.convergence import TARGET_RMS_CHANGE, run_bench
+        from endogsim.synth.suite import suite_scene_names
+
+        names = scenes.split(",") if scenes else suite_scene_names()
+        if frames is not None and frames < 2:
+            raise typer.BadParameter("--frames must be >= 2")
+        res = run_bench(names, frames, factor=factor, log=console.print)
+        print_table(f"Discretisation convergence: motion change under a {factor}x refinement (target rms change "
+                    f"<= {TARGET_RMS_CHANGE})",
+                    ["scene", "particles", "grid", "substeps", "refined grid", "refined particles",
+                     "refined substeps", "rms motion (mm)", "default's rms motion (mm)", "rms change", "seconds",
+                     "refined seconds"],
+                    [(c["scene"], c["particles"], c["grid"], c["substeps"], c["refined_grid"], c["refined_particles"],
+                      c["refined_substeps"], c["rms_motion_mm"], c["rms_motion_default_mm"], c["rms_change"],
+                      c["seconds"], c["refined_seconds"])
+                     for c in res["cases"]])
+        over = [c["scene"] for c in res["cases"] if not c["converged"]]
+        console.print(f"{len(res['cases']) - len(over)}/{len(res['cases'])} scenes within the target"
+                      + (f"; not converged: {', '.join(over)}" if over else ""))
         if json_out is not None:
             write_json_atomic(json_out, res)
             console.print(f"wrote {json_out}")

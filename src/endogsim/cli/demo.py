@@ -36,6 +36,8 @@ def register(app: typer.Typer) -> None:
     def demo_cmd(
         out: Path = typer.Option(Path("demo"), "--out", "-o", help="Output folder (re-run to resume)."),
         scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the synthesized scene, the reconstruction and the "
+                                 "identification (same seed, same results on any machine)."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         preview: bool = typer.Option(False, "--preview", help="Only render the procedural scene under a moving "
@@ -63,7 +65,7 @@ def register(app: typer.Typer) -> None:
 
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
-        cfg = DemoConfig(scene=scene)
+        cfg = DemoConfig(scene=scene, seed=seed)
         if recon_iters is not None:
             cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:
@@ -80,8 +82,13 @@ def register(app: typer.Typer) -> None:
                      ("RE mean, identified", _fmt_optional(s["re_mean"], ".3f")),
                      ("EPE (px), identified", _fmt_optional(s["epe"], ".3f")),
                      ("reconstruction PSNR, masked (dB)", _fmt_optional(s["recon_psnr_masked"], ".2f")),
+                     ("seed", str(s["seed"])),
                      ("pipeline seconds (all stages after synthesis)", f"{s['pipeline_seconds']:.0f}"),
                      ("seconds of this invocation", f"{s['seconds']:.0f}")])
+        for stage, stopped in s["stopped_by_budget"].items():
+            if stopped:
+                console.print(f"[yellow]{stage} was stopped by its time budget (a safety stop) after "
+                              f"{s['iterations'][stage]} iterations: its result depends on this machine's speed[/]")
         console.print(f"report: {s['report']}")
 
     @app.command("run")

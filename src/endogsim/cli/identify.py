@@ -33,7 +33,8 @@ def register(app: typer.Typer) -> None:
                                            help="Render/compare at this fraction of the image size."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
         time_budget: Optional[float] = typer.Option(_DEFAULT.time_budget, "--time-budget",
-                                                    help="Stop after this many seconds of optimisation (best kept)."),
+                                                    help="Safety stop after this many seconds of optimisation (best "
+                                                         "kept; the schedule follows --iters only)."),
         frame_stride: int = typer.Option(_DEFAULT.frame_stride, "--frame-stride",
                                          help="Compare every k-th frame (and its flow); the simulation runs through all."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),

@@ -23,7 +23,8 @@ def register(app: typer.Typer) -> None:
                                                          help="Training image scale (default 0.5 on CPU, 1 on GPU)."),
         iters: Optional[int] = typer.Option(None, "--iters", help="Total iterations (coarse + deformation)."),
         time_budget: Optional[float] = typer.Option(None, "--time-budget",
-                                                    help="Stop training after this many seconds and export."),
+                                                    help="Safety stop: stop training after this many seconds and "
+                                                         "export (the schedule follows --iters only)."),
         device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
         max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use only the first frames."),
         depth_method: Optional[str] = typer.Option(None, "--depth-method",

@@ -36,9 +36,11 @@ class IdentifyConfig:
             sigmoid is flat near the bounds, where tissue's nu (0.4 to 0.49) lies.
         lr_final_fraction: the step decays exponentially to ``lr * lr_final_fraction`` at the last iteration.
         max_grad_norm: gradient clipping (L2 norm over all parameters).
-        time_budget: stop starting new iterations once this many seconds of optimisation have passed (None:
-            no limit); the best iterate so far is kept. The default keeps a benchmark scene within 10 minutes
-            on a 2-core CPU, evaluation included.
+        time_budget: a safety stop: no new iteration starts once this many seconds of optimisation have
+            passed (None: no limit); the best iterate so far is kept and ``metrics.json`` says
+            ``stopped_by_budget``. The learning-rate schedule follows ``iters`` only, so a stopped run is an
+            unstopped one cut short, whatever the machine's speed. The default keeps a benchmark scene within
+            10 minutes on a 2-core CPU, evaluation included.
         tol: relative loss improvement below which an iteration does not count as progress.
         patience: stop after this many iterations without progress (early stopping).
         global_material: tie every deformable object to one (E, nu) pair (the "no material field" ablation).

@@ -123,7 +123,8 @@ def identifiable_table(intervals: list[ParameterInterval]) -> dict:
     for iv in intervals:
         out.setdefault(iv.name, {})[iv.parameter] = {
             "identifiable": iv.identifiable, "reason": iv.reason, "interval": iv.interval, "search_box": iv.search_box,
-            "best": iv.best, "evidence": {"first_gradient": iv.first_gradient,
+            "best": iv.best, "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
+                                          "significant_z": iv.significant_z,
                                           "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z}
                                                     for v, d, se, z in iv.slice]}}
     return out
@@ -159,7 +160,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
-        "stopped": result.stopped, "seconds": result.seconds,
+        "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
         "coverage": ev.coverage.to_json(),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,

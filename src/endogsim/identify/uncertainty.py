@@ -8,13 +8,26 @@ d_t = l_t(theta) - l_t(theta*) give
 
     Delta L = sum_t d_t,    SE = sqrt(n) std(d_t),    z = Delta L / SE   (n compared frames),
 
-a paired comparison of the two simulations over the frames. theta is excluded when z > Z; the interval is
-the connected set of values around theta* that are not excluded, its ends interpolated where z crosses Z.
-Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop at the first
-excluded value or the search box. A parameter is identifiable when its interval is bounded on both sides
-within the slice; one whose first gradient was zero is not, whatever its slice. Z = 1.645 (a one-sided 90%
-level) is checked on the benchmark suite: ``endogsim bench suite`` reports how often the true value falls
-in the interval (coverage).
+a paired comparison of the two simulations over the frames. theta is excluded from the interval when
+z > z_c; the interval is the connected set of values around theta* that are not excluded, its ends
+interpolated where z crosses z_c. A parameter is identifiable when on each side of theta* some trial value
+raises the loss significantly above its frame-to-frame noise, z > z_s (:func:`significant_z`): a one-sided
+test at 5% per side of "the loss does not depend on theta", under which z follows Student's t with n - 1
+degrees of freedom. Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop
+at the first significant value or the search box. One whose first gradient was zero is not identifiable,
+whatever its slice.
+
+The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
+with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
+where s = sqrt(n) std(g_t) / H is the (sandwich) standard error of theta*. The level-``LEVEL`` interval
+theta* +- q s is therefore z <= q / 2, with q the two-sided quantile of Student's t with n - 1 degrees of
+freedom (the noise is estimated from n frames). For a quadratic per-frame loss with independent Gaussian
+per-frame noise this is exact (``tests/test_uncertainty.py`` measures 90% coverage); z_c = 1.645, a
+one-sided normal test of "theta is worse than theta*", gave 97-99.8% there (intervals about twice too
+wide). The identifiability test needs more, z_s = q = 2 z_c (twice the interval's half-width on a quadratic
+loss): with z_c alone a loss of pure noise, independent of theta, passes on both sides about 23% of the
+time, with z_s about 5% (``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make the
+interval too narrow: ``endogsim bench suite`` reports how often the true value falls inside (coverage).
 """
 
 from __future__ import annotations
@@ -28,10 +41,11 @@ import torch
 
 from endogsim.materials.field import MaterialParams
 
-__all__ = ["Z_90", "E_STEPS", "NU_STEPS", "ParameterInterval", "paired_z", "interval_from_slice", "parameter_intervals"]
+__all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "ParameterInterval", "Slice", "paired_z", "critical_z", "significant_z",
+           "interval_from_slice", "walk_slice", "identifiability", "parameter_intervals"]
 
-#: One-sided 90% normal quantile: a trial value with z above it is excluded.
-Z_90 = 1.645
+#: The intervals' level (two-sided): the probability that the true value lies inside.
+LEVEL = 0.90
 #: Slice steps away from the optimum: log10 E (decades) and nu.
 E_STEPS = (0.1, 0.3, 1.0)
 NU_STEPS = (0.02, 0.06)
@@ -47,11 +61,16 @@ class ParameterInterval:
         best: the identified value.
         interval: [lo, hi] 90% interval (Pa for E), clipped to the search box.
         search_box: [lo, hi] the values identification could reach.
-        identifiable: bounded on both sides within the slice (and a non-zero first gradient).
+        identifiable: the loss rises significantly above its noise on both sides within the slice (and the
+            first gradient is not zero).
         reason: one line saying why (or why not).
         slice: [[value, Delta L, SE, z], ...] the trial values and their comparison with the optimum.
         first_gradient: the loss gradient with respect to this parameter at the first iteration (None when
             no iteration ran).
+        critical_z: the z above which a trial value was excluded (:func:`critical_z`; None: fewer than 2
+            compared frames, nothing excluded).
+        significant_z: the z above which a trial value's loss counted as significantly higher
+            (:func:`significant_z`; None likewise).
     """
 
     object_id: int
@@ -64,6 +83,8 @@ class ParameterInterval:
     reason: str
     slice: list[list[float]] = field(default_factory=list)
     first_gradient: float | None = None
+    critical_z: float | None = None
+    significant_z: float | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -79,8 +100,27 @@ def paired_z(per_frame: dict[int, float], reference: dict[int, float]) -> tuple[
     return delta, se, delta / max(se, 1e-12 * max(abs(delta), 1e-30))
 
 
+def critical_z(n: int, level: float = LEVEL) -> float:
+    """The z of :func:`paired_z` above which a trial value is excluded from the ``level`` interval, for ``n``
+    compared frames: half the two-sided ``level`` quantile of Student's t with n - 1 degrees of freedom
+    (module docstring; 0.917 for 10 frames at 90%, 0.822 in the limit). inf for n < 2: one frame has no
+    frame-to-frame noise to compare with, so nothing is excluded."""
+    if n < 2:
+        return math.inf
+    from scipy.stats import t
+
+    return 0.5 * float(t.ppf(0.5 + level / 2, n - 1))
+
+
+def significant_z(n: int, level: float = LEVEL) -> float:
+    """The z of :func:`paired_z` above which a trial value's loss is significantly higher than the optimum's,
+    for ``n`` compared frames: the one-sided (1 + ``level``) / 2 quantile of Student's t with n - 1 degrees of
+    freedom (1.833 for 10 frames at 90%), twice :func:`critical_z`; inf for n < 2."""
+    return 2.0 * critical_z(n, level)
+
+
 def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, float]]], box: tuple[float, float],
-                        threshold: float = Z_90) -> tuple[list[float], bool, bool]:
+                        threshold: float) -> tuple[list[float], bool, bool]:
     """The interval around ``best`` from trial points on each side.
 
     Args:
@@ -104,6 +144,81 @@ def interval_from_slice(best: float, side_points: dict[int, list[tuple[float, fl
     return [ends[-1], ends[1]], bounded[-1], bounded[1]
 
 
+@dataclass
+class Slice:
+    """One parameter's slice (:func:`walk_slice`).
+
+    Attributes:
+        interval: [lo, hi] in the slice's coordinate (the search box where a side is not bounded).
+        bounded: (below, above): a trial value was excluded on that side (z > the interval's critical z).
+        significant: (below, above): a trial value's loss rose significantly above the noise on that side.
+        records: [[value, Delta L, SE, z], ...] in the order evaluated.
+    """
+
+    interval: list[float]
+    bounded: tuple[bool, bool]
+    significant: tuple[bool, bool]
+    records: list[list[float]]
+
+
+def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
+               compare: Callable[[float], tuple[float, float, float]], threshold: float,
+               significance: float | None = None) -> Slice:
+    """Walk one parameter's slice outward from ``best``: its interval and what it shows on each side.
+
+    On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
+    side stops at the first value whose z exceeds ``significance`` (or, without it, ``threshold``) or where
+    the box ends. The interval's end on a side is where z first crosses ``threshold``.
+
+    Args:
+        best: the optimum (slice coordinate, e.g. log10 E).
+        steps: distances from ``best``, increasing.
+        box: the search box in the same coordinate.
+        compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
+        threshold: z above which a value is excluded from the interval (:func:`critical_z`).
+        significance: z above which the loss counts as significantly higher (:func:`significant_z`).
+    """
+    stop = threshold if significance is None else max(threshold, significance)
+    sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
+    records: list[list[float]] = []
+    for side in (-1, 1):
+        for step in steps:
+            v = min(max(best + side * step, box[0]), box[1])
+            if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
+                break  # the box ends here
+            delta, se, z = compare(v)
+            sides[side].append((v, z))
+            records.append([v, delta, se, z])
+            if z > stop:
+                break
+    interval, b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
+    sig = tuple(any(z > stop for _, z in sides[side]) for side in (-1, 1))
+    return Slice(interval, (b_lo, b_hi), sig, records)
+
+
+def identifiability(sl: Slice, first_gradient: float | None, span: str, significance: float) -> tuple[bool, str]:
+    """Whether a parameter is identifiable from its slice, and one line saying why (or why not).
+
+    Args:
+        sl: from :func:`walk_slice`.
+        first_gradient: the loss gradient at the first iteration (exactly 0: the video does not constrain it).
+        span: how far the slice went, for the message (e.g. "+-1.0 decades").
+        significance: the z a trial needed on each side (:func:`significant_z`).
+    """
+    if first_gradient is not None and first_gradient == 0.0:
+        return False, "the loss gradient was exactly zero: the video does not constrain it"
+    if not math.isfinite(significance):
+        return False, "fewer than 2 compared frames: no frame-to-frame noise to measure the loss against"
+    if all(sl.significant):
+        return True, (f"the loss rises significantly above its frame-to-frame noise (z > {significance:.4g}) "
+                      "on both sides")
+    if not any(sl.bounded):
+        return False, f"the loss changes by less than its frame-to-frame noise over {span} (clipped to the search box)"
+    flat = [name for name, sig in zip(("below", "above"), sl.significant) if not sig]
+    return False, (f"the loss does not rise significantly above its frame-to-frame noise (z > {significance:.4g}) "
+                   f"{' or '.join(flat)} the optimum within {span} (clipped to the search box)")
+
+
 def parameter_intervals(
     params: MaterialParams,
     object_names: dict[int, str],
@@ -111,7 +226,7 @@ def parameter_intervals(
     box_log10_E: Callable[[MaterialParams], tuple[list[float], list[float]]],
     optimise_nu: bool,
     first_gradients: dict[str, list[float]] | None = None,
-    threshold: float = Z_90,
+    level: float = LEVEL,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -122,8 +237,10 @@ def parameter_intervals(
         box_log10_E: parameters -> ([lower], [upper]) log10 E bounds per slot (upper depends on nu).
         optimise_nu: whether nu was identified (else only E gets an interval).
         first_gradients: {"log10_E": [...], "nu_raw": [...]} per slot at the first iteration.
+        level: the intervals' level (the critical z follows from it and the number of compared frames).
     """
     reference = evaluate(params)
+    threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     out = []
     for slot in range(params.log10_E.shape[0]):
         oids = [o for o in params.object_ids if params.slot(o) == slot]
@@ -134,39 +251,23 @@ def parameter_intervals(
             nlo, nhi = params.nu_bounds
             specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
         for what, steps, box, best in specs:
-            sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
-            records = []
-            for side in (-1, 1):
-                for step in steps:
-                    v = min(max(best + side * step, box[0]), box[1])
-                    if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
-                        break  # the box ends here
-                    trial = _with_value(params, slot, what, v)
-                    delta, se, z = paired_z(evaluate(trial), reference)
-                    sides[side].append((v, z))
-                    records.append([v, delta, se, z])
-                    if z > threshold:
-                        break
-            (lo, hi), b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
+            def compare(v: float, slot=slot, what=what) -> tuple[float, float, float]:
+                return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
+
+            sl = walk_slice(best, steps, box, compare, threshold, significance)
+            (lo, hi), records = sl.interval, sl.records
             g0 = None
             if first_gradients is not None:
                 g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
-            if g0 is not None and g0 == 0.0:
-                ok, reason = False, "the loss gradient was exactly zero: the video does not constrain it"
-            elif b_lo and b_hi:
-                ok, reason = True, f"the loss rises above its frame-to-frame noise (z > {threshold}) on both sides"
-            elif not (b_lo or b_hi):
-                span = f"+-{steps[-1]}{' decades' if what == 'E' else ''}"
-                ok, reason = False, (f"the loss changes by less than its frame-to-frame noise over {span} "
-                                     "(clipped to the search box)")
-            else:
-                ok, reason = False, f"bounded {'below' if b_lo else 'above'} only: the loss is flat on the other side"
+            ok, reason = identifiability(sl, g0, f"+-{steps[-1]}{' decades' if what == 'E' else ''}", significance)
             to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
                 identifiable=ok, reason=reason,
-                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0))
+                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
+                critical_z=threshold if math.isfinite(threshold) else None,
+                significant_z=significance if math.isfinite(significance) else None))
     return out
 
 

@@ -6,6 +6,11 @@
    write the report;
 3. print the recovered vs ground-truth materials.
 
+What it computes depends on ``DemoConfig`` and its ``seed`` only, never on the machine's speed: every stage
+runs a fixed number of iterations on schedules that count iterations. The time budgets are safety stops,
+several times what the stages take on a 2-core CPU; a stage they stop says so (``stopped_by_budget`` in its
+metrics and in ``summary.json``), and its result is then the fixed-iteration run cut short.
+
 Outputs in OUT: ``render.mp4`` and ``frames/`` (the observed video, slowed to at most 10 frames/s), ``scene_truth/`` (the synthesized scene),
 ``run/`` (the run folder, with ``run/report.html``), ``summary.json``.
 """
@@ -14,14 +19,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from endogsim.identify.config import IdentifyConfig
 from endogsim.io.atomic import write_json_atomic
 from endogsim.recon.config import ReconConfig
 
-__all__ = ["DemoConfig", "run_demo"]
+__all__ = ["DemoConfig", "run_demo", "synthesize_observed"]
 
 
 @dataclass
@@ -31,9 +36,11 @@ class DemoConfig:
     Attributes:
         scene: benchmark scene to synthesise.
         frames: frames of the synthesized video (None: the scene's default).
-        seed: synthesis seed.
-        recon: ReconConfig overrides for the reconstruction stage.
-        identify: IdentifyConfig overrides for the identification stage.
+        seed: the demo's seed: the synthesized scene's (textures, perturbations, noise) and the
+            reconstruction's and identification's (their ``seed`` fields are set to it). The same seed gives
+            the same results; another seed another scene.
+        recon: ReconConfig of the reconstruction stage (a dict: its fields over the defaults).
+        identify: IdentifyConfig of the identification stage (a dict: its fields over the defaults).
         interaction: the new interaction simulated with the identified materials.
         tool_motion: "truth" (the benchmark protocol: identification gets the ground truth's boundary settings,
             tool trajectory included) or "reconstructed" (the tool's tracked motion, as on a real video).
@@ -42,42 +49,63 @@ class DemoConfig:
     scene: str = "tiny"
     frames: int | None = None
     seed: int = 0
-    # Time budgets keep the whole demo within about 10 minutes on a 2-core CPU; each stage stops at its
-    # budget with its best result so far.
-    recon: ReconConfig = field(default_factory=lambda: ReconConfig(resolution_scale=1.0, iters=600, time_budget_s=180.0))
-    identify: IdentifyConfig = field(default_factory=lambda: IdentifyConfig(iters=10, time_budget=180.0))
+    # Fixed iteration counts (600 reconstruction iterations take ~40 s on one core of a 2-core CPU for tiny);
+    # the time budgets are only safety stops, far beyond that.
+    recon: ReconConfig = field(default_factory=lambda: ReconConfig(resolution_scale=1.0, iters=600, time_budget_s=900.0))
+    identify: IdentifyConfig = field(default_factory=lambda: IdentifyConfig(iters=10, time_budget=900.0))
     interaction: str | None = "poke"
     tool_motion: str = "truth"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.recon, dict):
+            self.recon = ReconConfig.from_dict(self.recon)
+        if isinstance(self.identify, dict):
+            self.identify = IdentifyConfig.from_json(self.identify)
+
+
+def synthesize_observed(out: Path, cfg: DemoConfig, on_stage: Callable[[str, str], None] | None = None) -> Path:
+    """Step 1: synthesize ``cfg.scene`` with ``cfg.seed`` into ``out/scene_truth`` (kept when already there),
+    with the observed video as ``out/render.mp4`` and ``out/frames/``; returns the scene folder."""
+    from endogsim.io.video_writer import write_frames_png, write_video
+    from endogsim.scene.folder import read_observations
+    from endogsim.scene.schema import load_scene_spec
+    from endogsim.synth import synthesize
+
+    truth_dir = Path(out) / "scene_truth"
+    if (truth_dir / "scene.json").is_file():
+        return truth_dir
+    if on_stage:
+        on_stage("synthesize", "start")
+    synthesize(cfg.scene, truth_dir, seed=cfg.seed, frames=cfg.frames)
+    truth = load_scene_spec(truth_dir)
+    frames, *_ = read_observations(truth_dir, truth, truth.frames)
+    # Slow motion: the simulated clip spans a fraction of a second.
+    write_video(frames, Path(out) / "render.mp4", fps=min(10.0, 1.0 / truth.scenario.frame_dt))
+    write_frames_png(frames, Path(out) / "frames")
+    if on_stage:
+        on_stage("synthesize", "done")
+    return truth_dir
 
 
 def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
              on_stage: Callable[[str, str], None] | None = None) -> dict:
     """Run (or resume) the demo into ``out``; returns the summary (also written to ``out/summary.json``)."""
-    from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import PipelineConfig, run_pipeline
     from endogsim.scene.schema import load_scene_spec
-    from endogsim.synth import synthesize
 
     out = Path(out)
     t0 = time.perf_counter()
-    truth_dir = out / "scene_truth"
-    if not (truth_dir / "scene.json").is_file():
-        if on_stage:
-            on_stage("synthesize", "start")
-        synthesize(cfg.scene, truth_dir, seed=cfg.seed, frames=cfg.frames)
-        from endogsim.scene.folder import read_observations
-
-        truth = load_scene_spec(truth_dir)
-        frames, *_ = read_observations(truth_dir, truth, truth.frames)
-        # Slow motion: the simulated clip spans a fraction of a second.
-        write_video(frames, out / "render.mp4", fps=min(10.0, 1.0 / truth.scenario.frame_dt))
-        write_frames_png(frames, out / "frames")
-        if on_stage:
-            on_stage("synthesize", "done")
+    truth_dir = synthesize_observed(out, cfg, on_stage)
     truth = load_scene_spec(truth_dir)
+    if (truth.name, truth.seed) != (cfg.scene, cfg.seed):
+        from endogsim.errors import DataError
+
+        raise DataError(f"{truth_dir} holds scene {truth.name!r} synthesized with seed {truth.seed}, not {cfg.scene!r} "
+                        f"with seed {cfg.seed}: use another --out")
     state = run_pipeline(truth_dir, out / "run",
-                         PipelineConfig(materials_backend="prior", recon=cfg.recon, identify=cfg.identify,
+                         PipelineConfig(materials_backend="prior", recon=replace(cfg.recon, seed=cfg.seed),
+                                        identify=replace(cfg.identify, seed=cfg.seed),
                                         interaction=cfg.interaction, tool_motion=cfg.tool_motion),
                          truth=truth_dir, on_stage=on_stage)
     ident = state["stages"]["identify"]
@@ -88,8 +116,10 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
             continue
         got = ident.get("materials", {}).get(o.name, {})
         rows.append({"object": o.name, "E_true": o.E, "E_init": init_field[o.id].E, "E_identified": got.get("E"),
-                     "nu_true": o.nu, "nu_init": init_field[o.id].nu, "nu_identified": got.get("nu")})
+                     "nu_true": o.nu, "nu_init": init_field[o.id].nu, "nu_identified": got.get("nu"),
+                     "source": got.get("source")})
     summary = {
+        "seed": cfg.seed,
         "seconds": round(time.perf_counter() - t0, 1),  # this invocation (less when resuming)
         "pipeline_seconds": round(sum(v.get("seconds", 0.0) for v in state["stages"].values()), 1),
         "materials": rows,
@@ -98,6 +128,9 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
         "recon_psnr_masked": state["stages"]["reconstruct"].get("psnr_masked"),
         "report": state["stages"].get("report", {}).get("report"),
         "stage_seconds": {k: v.get("seconds") for k, v in state["stages"].items()},
+        "iterations": {k: state["stages"][k].get("iterations") for k in ("reconstruct", "identify")},
+        "stopped_by_budget": {k: bool(state["stages"][k].get("stopped_by_budget"))
+                              for k in ("reconstruct", "identify")},
     }
     write_json_atomic(out / "summary.json", summary)
     return summary

@@ -157,7 +157,8 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
         from endogsim.recon.train import reconstruct
 
         m = reconstruct(data, out / "recon", cfg.recon, resume=not fresh)
-        keep = ("psnr_masked", "psnr_endonerf", "ssim", "training_seconds", "num_gaussians", "data_notes")
+        keep = ("psnr_masked", "psnr_endonerf", "ssim", "training_seconds", "iterations", "stopped_by_budget",
+                "num_gaussians", "data_notes")
         return {k: m[k] for k in keep if k in m}
 
     def scenario_stage() -> dict:
@@ -172,7 +173,8 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
 
         m = run_identify(out / "scene", out / "identify", init=cfg.materials_backend,
                          config=cfg.identify, video=cfg.video, evaluate_init=truth is not None, resume=not fresh)
-        keep = ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "iterations", "seconds", "materials")
+        keep = ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "iterations", "stopped", "stopped_by_budget",
+                "seconds", "materials")
         return {k: m[k] for k in keep if k in m} | ({"init_metrics": m["init_metrics"]} if "init_metrics" in m else {})
 
     def simulate_stage() -> dict:

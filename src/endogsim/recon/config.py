@@ -14,7 +14,7 @@ A config file holds any subset of the fields below (unknown keys are refused); t
 Defaults are for a 2-core CPU, where the cost of an iteration is the number of (pixel, Gaussian) pairs
 the rasteriser composites plus the deformation of every Gaussian: half resolution, ~10k Gaussians from
 every 3rd pixel with small initial footprints, point tracks and a track warm-up, bounded densification,
-2000 iterations (with ``time_budget_s`` the schedule follows the budget instead). :func:`default_config`
+2000 iterations (``time_budget_s`` only stops a run early; it never changes the schedule). :func:`default_config`
 ("cuda") switches to full resolution and the Endo-4DGS iteration counts.
 """
 
@@ -72,10 +72,11 @@ class ReconConfig:
         checkpoint_every: iterations between checkpoints (resume after an interruption).
         eval_every: evaluate the test frames every n iterations into the history (0: only at the end);
             the evaluation time is not counted as training time.
-        time_budget_s: stop training once this many training seconds are spent (None: no limit) and
-            export what there is; ``metrics.json`` then says ``stopped_by_time_budget``. The schedules
-            (coarse stage, learning-rate decay, densification window) then run on the larger of the
-            iteration and the time fractions, so a budget-limited run still completes them.
+        time_budget_s: a safety stop: stop training once this many training seconds are spent (None: no
+            limit) and export what there is; ``metrics.json`` then says ``stopped_by_budget``. The
+            schedules (coarse stage, learning-rate decay, densification window) run on iterations only,
+            so what a run computes does not depend on the machine's speed: a stopped run is an unstopped
+            one cut short (its learning rates not fully decayed).
     Initialisation:
         init_stride: back-project every ``init_stride``-th pixel in x and y.
         init_scale: initial standard deviation in units of the grid spacing (smaller: fewer pixel-Gaussian

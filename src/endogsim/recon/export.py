@@ -91,7 +91,7 @@ def export_run(tr: "Trainer") -> dict:
         **ev, "ssim": ev["ssim_masked"], "test_frames": tr.prep.test, "per_frame": per_frame,
         "train_frames": len(tr.prep.train),
         "training_seconds": round(tr.elapsed, 2), "iterations": tr.iteration,
-        "stopped_by_time_budget": tr.stopped_by_time_budget,
+        "stopped_by_budget": tr.stopped_by_budget,
         "num_gaussians": len(canonical), "num_tissue_gaussians": len(tissue),
         "num_tool_gaussians": 0 if tools is None else len(tools),
         "resolution": [sc.width, sc.height], "device": str(tr.device),

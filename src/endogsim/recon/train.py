@@ -36,8 +36,10 @@ neighbours in frame time (repeated frames of a frame-rate conversion share their
 the frame with the model frozen, as unposed-video methods are evaluated (no interpolation can follow
 the jerks of a hand-held endoscope); the exported poses of the test frames are those registered ones.
 
-With ``time_budget_s`` every schedule runs on :meth:`Trainer.progress`; the training seconds include
-the priors of the initialisation, the tracking and the warm-up.
+Every schedule runs on :meth:`Trainer.progress`, the share of ``iters`` done: what a run computes does not
+depend on the machine's speed. ``time_budget_s`` is only a safety stop (the training seconds include the
+priors of the initialisation, the tracking and the warm-up): a run it stops is the same run as an unstopped
+one up to the iteration where it stopped, and ``metrics.json`` says ``stopped_by_budget``.
 """
 
 from __future__ import annotations
@@ -120,7 +122,7 @@ class Trainer:
         self.iteration = 0
         self.elapsed = 0.0
         self.history: list[dict] = []
-        self.stopped_by_time_budget = False
+        self.stopped_by_budget = False
         self.gen = torch.Generator().manual_seed(config.seed)
         self._order: list[int] = []
 
@@ -352,18 +354,13 @@ class Trainer:
         return self._order.pop()
 
     def progress(self) -> float:
-        """Share of the run done, in [0, 1]: iterations over ``iters`` or, with a time budget, the
-        training seconds over the budget when that is further along.
+        """Share of the run done, in [0, 1]: iterations over ``iters``.
 
-        Every schedule (coarse/fine switch, learning-rate decay, densification window) runs on this, so
-        a run stopped by its time budget has still decayed its learning rates and finished densifying,
-        whatever the speed of the machine.
+        Every schedule (coarse/fine switch, learning-rate decay, densification window) runs on this and
+        never on the clock, so a run computes the same on a slow machine as on a fast one; a time budget
+        can only stop it early (:meth:`run`).
         """
-        c = self.cfg
-        f = self.iteration / c.iters
-        if c.time_budget_s is not None:
-            f = max(f, self.elapsed / c.time_budget_s)
-        return min(f, 1.0)
+        return min(self.iteration / self.cfg.iters, 1.0)
 
     def _set_lrs(self, f: float) -> None:
         c = self.cfg
@@ -442,7 +439,7 @@ class Trainer:
         self.deform_opt.zero_grad(set_to_none=True)
 
         it = self.iteration + 1
-        f_done = max(f, min(it / c.iters, 1.0))  # the progress including this iteration
+        f_done = min(it / c.iters, 1.0)  # the progress including this iteration
         if c.densify_from < f_done <= c.densify_until and it % c.densify_every == 0:
             # A bounded growth per step: adding most of the set at once drops the PSNR for a while (the
             # children start as opaque as their parents) and makes every later iteration slower.
@@ -494,7 +491,7 @@ class Trainer:
         try:
             while self.iteration < c.iters:
                 if c.time_budget_s is not None and self.elapsed >= c.time_budget_s:
-                    self.stopped_by_time_budget = True
+                    self.stopped_by_budget = True  # a safety stop: nothing else depends on the clock
                     break
                 t0 = time.perf_counter()
                 info = self.step()

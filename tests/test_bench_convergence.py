@@ -1,0 +1,64 @@
+"""``endogsim bench convergence``: identification's discretisation against its 2x refinement."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from typer.testing import CliRunner
+
+from endogsim.bench.convergence import TARGET_RMS_CHANGE, convergence_case, run_bench
+from endogsim.cli.main import app
+from endogsim.errors import DataError
+
+CASE_KEYS = {"scene", "frames", "factor", "particles", "grid", "substeps", "particle_spacing_mm", "refined_particles",
+             "refined_grid", "refined_substeps", "rms_motion_mm", "rms_motion_default_mm", "rms_change", "converged",
+             "seconds", "refined_seconds"}
+
+
+def _check_case(c: dict, frames: int) -> None:
+    assert set(c) == CASE_KEYS
+    assert c["scene"] == "tiny" and c["frames"] == frames
+    # the refinement: 2x the grid, 8x the particles (up to the outline's rounding), at least 2x the substeps
+    assert c["refined_grid"] == 2 * c["grid"] and c["refined_substeps"] >= 2 * c["substeps"]
+    assert 6 * c["particles"] < c["refined_particles"] < 10 * c["particles"]
+    assert c["rms_motion_mm"] > 0 and c["rms_motion_default_mm"] > 0
+    assert math.isfinite(c["rms_change"]) and 0 <= c["rms_change"] < 1
+    assert c["converged"] == (c["rms_change"] <= TARGET_RMS_CHANGE)
+
+
+def test_cli_writes_the_cases_and_settings(tmp_path):
+    out = tmp_path / "conv.json"
+    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--frames", "3", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "rms change" in r.output and "tiny" in r.output
+    res = json.loads(out.read_text())
+    assert len(res["cases"]) == 1
+    _check_case(res["cases"][0], 3)
+    assert res["settings"]["scenes"] == ["tiny"] and res["settings"]["frames"] == 3
+    assert res["settings"]["target_rms_change"] == TARGET_RMS_CHANGE
+
+
+def test_unknown_scenes_are_refused_before_any_work():
+    with pytest.raises(DataError, match="unknown suite scene.*nowhere"):
+        run_bench(["tiny", "nowhere"])
+    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "nowhere"])
+    assert r.exit_code == 2 and "nowhere" in r.output
+
+
+@pytest.fixture(scope="module")
+def tiny_default():
+    return convergence_case("tiny")  # its default 10 frames (about 6 s on one core)
+
+
+@pytest.mark.slow
+def test_tiny_at_its_default_frames(tiny_default):
+    _check_case(tiny_default, 10)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 21: tiny's motion changes by ~25% under a 2x refinement (target 5%); "
+                                       "remove this mark once the discretisation converges")
+def test_tiny_meets_the_convergence_target(tiny_default):
+    assert tiny_default["rms_change"] <= TARGET_RMS_CHANGE
