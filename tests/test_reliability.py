@@ -287,7 +287,7 @@ def test_scene_json_frames_and_files_are_checked(tiny, tmp_path, edit, needle):
 def test_identify_never_writes_nan_and_refuses_corrupt_state(tiny, tmp_path):
     from endogsim.identify import IdentifyConfig, run_identify
 
-    def no_flow(d):  # a scene without ground-truth flow: EPE is NaN
+    def no_flow(d):  # a scene without ground-truth flow (a real video): EPE against the observed flow
         d["files"].pop("flow")
         d["files"].pop("flow_valid")
 
@@ -295,9 +295,9 @@ def test_identify_never_writes_nan_and_refuses_corrupt_state(tiny, tmp_path):
     run = tmp_path / "run"
     cfg = IdentifyConfig(iters=1, frame_stride=2)
     m = run_identify(scene, run, config=cfg, video=False)
-    assert math.isnan(m["epe"])
-    written = strict_json(run / "metrics.json")
-    assert written["epe"] is None and written["non_finite"]["epe"] == "nan"
+    assert math.isfinite(m["epe"]) and m["epe_reference"] == "observed flow"
+    written = strict_json(run / "metrics.json")  # parses with NaN/inf refused
+    assert written["epe"] == pytest.approx(m["epe"])
 
     flow = run / "observed_flow.npz"
     flow.write_bytes(flow.read_bytes()[:100])

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from endogsim.determinism import deterministic
 from endogsim.errors import DataError, IdentificationError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.identify.config import IdentifyConfig
@@ -200,6 +201,7 @@ def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams 
         return identification_loss(rendered, obs, config.term_weights())
 
 
+@deterministic()
 def identify(
     problem: SimScene,
     init_field: MaterialField,

@@ -76,6 +76,10 @@ class RealScenario:
         grey_saturation: an instrument's Gaussians with saturation (max - min) / max of their colour below
             this are its metal core (the collider is fitted to those).
         clearance: a collider pushed out of the tissue ends this far (in grid cells) from the nearest particle.
+        instrument_radius: (lo, hi) metres: a fitted shaft radius is clipped to the standard instrument sizes,
+            5 mm laparoscopic (2.5 mm) to 8.5 mm robotic (4.25 mm) shafts. Depth from a monocular
+            reconstruction scales every size (EndoNeRF pulling's 8 mm da Vinci instruments measure 11-14 mm
+            at the fallback depth; CholecSeg8K's 5 mm grasper measures 1.9 mm on its few grey Gaussians).
     """
 
     thickness: float = 0.008
@@ -91,6 +95,7 @@ class RealScenario:
     mass_scaling: float = 4.0
     grey_saturation: float = 0.3
     clearance: float = 0.25
+    instrument_radius: tuple[float, float] = (0.0025, 0.00425)
 
 
 @dataclass
@@ -120,12 +125,14 @@ class ToolFit:
                 "tissue_particles_inside_before_push": self.inside}
 
 
-def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None,
+                     radius_bounds: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """A capsule (tip [3], end [3], radius m) around a tool's Gaussians seen from one side.
 
     The axis is the principal direction of the points; the radius is half the tool's width across the
-    axis and the viewing ray; the axis sits that far behind the visible surface (the points lie on the
-    near half of the shaft). ``tip`` is the end farther from the camera (the working end).
+    axis and the viewing ray (clipped to ``radius_bounds``, metres, when given); the axis sits that far
+    behind the visible surface (the points lie on the near half of the shaft). ``tip`` is the end farther
+    from the camera (the working end).
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 4:
@@ -141,6 +148,8 @@ def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None
     across /= np.linalg.norm(across)
     w = (pts - c) @ across
     radius = max(0.5 * float(np.percentile(w, 97) - np.percentile(w, 3)), 1e-4)
+    if radius_bounds is not None:
+        radius = float(np.clip(radius, *radius_bounds))
     c_axis = c + ray * (2.0 / math.pi) * radius  # centroid of a half cylinder's surface is 2r/pi off the axis
     s = (pts - c) @ axis
     a, b = c_axis + axis * np.percentile(s, 1), c_axis + axis * np.percentile(s, 99)
@@ -220,7 +229,13 @@ def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: n
             continue
         tool = g0.subset(sel)
         core = grey_core(tool, scenario.grey_saturation)
-        tip, end, radius = fit_tool_capsule(tool.means[core].detach().double().numpy())
+        tip, end, measured = fit_tool_capsule(tool.means[core].detach().double().numpy())
+        tip, end, radius = fit_tool_capsule(tool.means[core].detach().double().numpy(),
+                                            radius_bounds=scenario.instrument_radius)
+        if radius != measured:
+            warnings.warn(f"instrument {oid}: its Gaussians measure a radius of {measured * 1e3:.1f} mm; the collider "
+                          f"takes {radius * 1e3:.1f} mm, the nearest standard instrument size (the depth of a "
+                          "monocular reconstruction scales every size)", DataWarning, stacklevel=2)
         tip, end, pushed, inside = push_out_of_tissue(tip, end, radius, tissue_particles, scenario.clearance * dx)
         if inside:
             warnings.warn(f"instrument {oid}: its fitted collider (radius {radius * 1e3:.1f} mm) held {inside} tissue "

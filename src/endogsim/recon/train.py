@@ -51,6 +51,7 @@ from typing import Callable
 
 import torch
 
+from endogsim.determinism import deterministic
 from endogsim.errors import DataError
 from endogsim.evaluate.image_metrics import masked_l1, ssim_map
 from endogsim.gaussians.camera import Camera
@@ -535,6 +536,7 @@ class Trainer:
         return export_run(self)
 
 
+@deterministic()
 def reconstruct(data: str | Path, out_dir: str | Path, config: ReconConfig | None = None, *,
                 progress: ProgressFn | None = None, resume: bool = True, stop_after: int | None = None) -> ReconResult:
     """Reconstruct a dataset into a run folder.

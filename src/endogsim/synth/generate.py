@@ -34,12 +34,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from endogsim.determinism import deterministic
 from endogsim.errors import DataError, SimulationError
 from endogsim.gaussians.flow import render_with_flow
+from endogsim.gaussians.model import Gaussians, covariance_to_scale_rot
 from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
 from endogsim.io.atomic import atomic_folder, write_json_atomic
-from endogsim.gaussians.model import Gaussians, covariance_to_scale_rot
 from endogsim.physics import (
     MPMConfig,
     ObjectMaterials,
@@ -234,6 +235,7 @@ def write_scene_folder(b: BuiltScene, r: dict, out_dir: Path, seed: int, frame0:
     return out_dir
 
 
+@deterministic()
 def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frames: int | None = None,
                scale: float | None = None, from_dir: str | os.PathLike | None = None,
                progress: Callable[[str, int, int], None] | None = None, **from_kwargs) -> Path:
