@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from endogsim.identify.optimize import NOT_IDENTIFIABLE, identified_field
+from endogsim.identify.optimize import NOT_IDENTIFIABLE, ONE_SIDED, identified_field
 from endogsim.identify.uncertainty import (
     E_STEPS,
     LEVEL,
@@ -134,6 +134,15 @@ def test_a_flat_loss_is_not_identifiable_and_keeps_the_prior():
     ident = identified_field(init, params, ivs)
     assert ident[1].E == pytest.approx(3000.0 * 10 ** 0.5) and ident[1].nu == 0.4
     assert ident[1].source == f"identified (nu: {NOT_IDENTIFIABLE})"
+    # nu bounded on one side only, and its interval excludes the prior: the estimate, labelled so
+    nu_hat = float(params.nu()[0])
+    ivs[1].interval = [0.0, (nu_hat + 0.4) / 2]
+    ident = identified_field(init, params, ivs)
+    assert ident[1].nu == pytest.approx(nu_hat) and ident[1].source == f"identified (nu: {ONE_SIDED})"
+    ivs[0].identifiable = False  # and E's interval (the whole box) holds its prior: kept
+    ident = identified_field(init, params, ivs)
+    assert ident[1].E == 3000.0 and ident[1].nu == pytest.approx(nu_hat)
+    assert ident[1].source == f"E: {NOT_IDENTIFIABLE}; nu: {ONE_SIDED}"
 
 
 def test_a_tool_that_never_touches_the_tissue_determines_nothing(tmp_path):

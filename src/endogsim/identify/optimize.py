@@ -356,29 +356,41 @@ def identify(
 
 #: The source of a material the video could not determine: its initial value is kept.
 NOT_IDENTIFIABLE = "prior (not identifiable from this video)"
+#: A parameter bounded by the video on one side only, whose prior lies outside its interval.
+ONE_SIDED = "estimate (bounded on one side by this video, which excludes the prior)"
 
 
 def identified_field(init: MaterialField, final: MaterialParams, intervals: list[ParameterInterval]) -> MaterialField:
     """The identified field: every deformable object's E and nu from ``final`` where the video determines
-    them (``intervals``; all of them without intervals), its initial value elsewhere, labelled so."""
-    ok = {(iv.object_id, iv.parameter): iv.identifiable for iv in intervals}
+    them (``intervals``; all of them without intervals). A parameter it does not determine keeps its initial
+    value while that value lies in the parameter's 90% interval (the video cannot tell the two apart),
+    labelled :data:`NOT_IDENTIFIABLE`; when the interval excludes it (the loss rises significantly on one
+    side, and the prior lies there), the estimate replaces it, labelled :data:`ONE_SIDED`."""
+    by = {(iv.object_id, iv.parameter): iv for iv in intervals}
     E = final.E().detach().tolist()
     nu = final.nu().detach().tolist()
     recs = []
     for r in init.records:
         if not r.rigid and r.object_id in final.object_ids:
             s = final.slot(r.object_id)
-            slot_ids = [o for o in final.object_ids if final.slot(o) == s]
-            e_ok = ok.get((slot_ids[0], "E"), True)
-            nu_ok = ok.get((slot_ids[0], "nu"), True)
-            if e_ok and nu_ok:
-                source = "identified"
-            elif not (e_ok or nu_ok):
-                source = NOT_IDENTIFIABLE
+            sid = next(o for o in final.object_ids if final.slot(o) == s)
+            values, labels = {}, {}
+            for name, estimate, prior in (("E", float(E[s]), r.E), ("nu", float(nu[s]), r.nu)):
+                iv = by.get((sid, name))
+                if iv is None or iv.identifiable:
+                    values[name], labels[name] = estimate, "identified"
+                elif iv.interval[0] <= prior <= iv.interval[1]:
+                    values[name], labels[name] = prior, NOT_IDENTIFIABLE
+                else:
+                    values[name], labels[name] = estimate, ONE_SIDED
+            if labels["E"] == labels["nu"]:
+                source = labels["E"]
             else:
-                source = f"identified ({'E' if not e_ok else 'nu'}: {NOT_IDENTIFIABLE})"
-            r = r.model_copy(update={"E": float(E[s]) if e_ok else r.E, "nu": float(nu[s]) if nu_ok else r.nu,
-                                     "source": source, "confidence": None})
+                source = "; ".join(f"{k}: {v}" for k, v in labels.items())
+                if "identified" in labels.values():
+                    odd = next(k for k, v in labels.items() if v != "identified")
+                    source = f"identified ({odd}: {labels[odd]})"
+            r = r.model_copy(update={"E": values["E"], "nu": values["nu"], "source": source, "confidence": None})
             r = MaterialRecord.model_validate(r.model_dump())  # re-check physical bounds
         recs.append(r)
     return MaterialField(recs, meta=dict(init.meta))
