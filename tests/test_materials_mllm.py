@@ -9,7 +9,6 @@ import json
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -256,9 +255,9 @@ def test_server_without_json_mode(server, tmp_path):
 
 
 def test_cli_mllm_then_replay(server, tmp_path, monkeypatch):
-    import endogsim.io
     from typer.testing import CliRunner
 
+    import endogsim.io
     from endogsim.cli.main import app
     from endogsim.materials import MaterialField
 

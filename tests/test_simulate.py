@@ -10,8 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 from endogsim.errors import DataError, MaterialError, SimulationError
-from endogsim.pipeline.interaction import builtin_interactions, load_interaction
 from endogsim.gaussians.model import covariance_to_scale_rot
+from endogsim.pipeline.interaction import builtin_interactions, load_interaction
 from endogsim.pipeline.simulate import resolve_scene, simulate_interaction
 
 FRAMES = 4

@@ -37,7 +37,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("demo"), "--out", "-o", help="Output folder (re-run to resume)."),
         scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the synthesized scene, the reconstruction and the "
-                                 "identification (same seed, same results on any machine)."),
+                                 "identification (same seed and thread count: same results, at any speed)."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         preview: bool = typer.Option(False, "--preview", help="Only render the procedural scene under a moving "

@@ -23,8 +23,8 @@ def register(app: typer.Typer) -> None:
         scene: Path = typer.Argument(..., help="Scene folder with scene.json (e.g. from `endogsim synth`)."),
         out: Path = typer.Option(..., "--out", "-o", help="Run folder (outputs and checkpoint; resumes if present)."),
         init: str = typer.Option("prior", "--init", help="manual | prior | mllm | replay | a materials JSON file."),
-        loss: str = typer.Option(_DEFAULT.loss, "--loss", help="joint_track (render + 0.1 flow + 0.1 track) | "
-                                 "joint (render + 0.1 flow) | render | flow | track."),
+        loss: str = typer.Option(_DEFAULT.loss, "--loss", help="joint (render + 0.1 flow) | joint_track (+ 0.1 "
+                                 "track) | render | flow | track."),
         grad_mode: str = typer.Option(_DEFAULT.grad_mode, "--grad-mode", help="last_substep | frame | full."),
         iters: int = typer.Option(_DEFAULT.iters, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
         global_material: bool = typer.Option(False, "--global-material",

@@ -18,9 +18,13 @@ class IdentifyConfig:
     """How identification runs.
 
     Attributes:
-        loss: "joint_track" (the paper's joint loss plus the track term; on a scene without tracks the same
-            as "joint"), "joint" (the paper's L = render + lambda * flow), "render" (appearance only), "flow"
-            (motion only) or "track" (the reconstruction's tissue trajectories only).
+        loss: "joint" (the paper's L = render + lambda * flow; the default), "joint_track" (plus the track
+            term against the reconstruction's tissue trajectories; on a scene without tracks the same as
+            "joint"), "render" (appearance only), "flow" (motion only) or "track" (trajectories only).
+            "joint" is the default because of an ablation on the demo path (``endogsim demo --seed 0..9``,
+            docs/IDENTIFICATION.md section 5): with the track term 2 of 10 seeds ended further from the true E
+            than the prior (the reconstruction's trajectories move less than the tissue, which reads as
+            stiffer tissue: E 13.7 and 14.5 kPa for a true 2.5 kPa); without it none did.
         flow_weight: lambda, the weight of the flow term (paper: 0.1).
         track_weight: mu, the weight of the track term (pixels^2, like the flow term).
         loss_terms: explicit {term: weight} over the registered loss terms
@@ -70,7 +74,7 @@ class IdentifyConfig:
         device: "cpu" or "cuda" for the simulator and renderer.
     """
 
-    loss: LossKind = "joint_track"
+    loss: LossKind = "joint"
     flow_weight: float = 0.1
     track_weight: float = 0.1
     loss_terms: dict[str, float] | None = None

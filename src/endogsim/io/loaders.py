@@ -43,7 +43,7 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.io import labels as L
 from endogsim.io.images import read_grey, read_rgb, resize
-from endogsim.io.scene import ObjectLabel, Scene
+from endogsim.io.scene import Scene
 
 ENDONERF_FPS = 30.0
 CHOLEC_FPS = 25.0
