@@ -54,11 +54,13 @@ class Projection:
     valid: torch.Tensor
 
 
-def world_to_camera(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Camera-space means [N, 3] and covariances [N, 3, 3] from world ones and a [4, 4] world->camera."""
+def world_to_camera(means: torch.Tensor, covars: torch.Tensor | None,
+                    viewmat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Camera-space means [N, 3] and covariances [N, 3, 3] (None stays None) from world ones and a [4, 4]
+    world->camera."""
     R = viewmat[:3, :3].to(means.dtype)
     t = viewmat[:3, 3].to(means.dtype)
-    return means @ R.T + t, R @ covars @ R.T
+    return means @ R.T + t, None if covars is None else R @ covars @ R.T
 
 
 def project_gaussians(

@@ -101,6 +101,7 @@ def _reconstruction_renders(recon_dir: Path, camera, frames: list[int], T: int) 
     frame's camera (``camera``: the evaluation intrinsics)."""
     from endogsim.gaussians.camera import Camera
     from endogsim.gaussians.flow import render_with_flow
+    from endogsim.gaussians.rasterize_torch import world_to_camera
     from endogsim.gaussians.render import rasterize
     from endogsim.recon.model import load_reconstruction
 
@@ -109,9 +110,7 @@ def _reconstruction_renders(recon_dir: Path, camera, frames: list[int], T: int) 
 
     def state(t: int):
         g = rec.gaussians_at(t, include_tools=True)
-        V = rec.camera_at(t).viewmat.to(g.means)
-        R = V[:3, :3]
-        return g, g.means @ R.T + V[:3, 3], R @ g.covariances() @ R.T
+        return g, *world_to_camera(g.means, g.covariances(), rec.camera_at(t).viewmat.to(g.means))
 
     rgbs, flows = [], []
     with torch.no_grad():
@@ -143,7 +142,6 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.identify import run_identify
     from endogsim.identify.loss import make_observations, observed_flow
     from endogsim.identify.report import comparison_frames
-    from endogsim.identify.run import initial_field
     from endogsim.io.runfolder import run_folder
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import run_pipeline
@@ -172,7 +170,8 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
                          video=cfg.pipeline.video,
                          progress=lambda k, n, rec: log(f"  iteration {k}/{n}: loss {rec['loss']:.5g}"))
         calibrated = MaterialField.load(out / "calibrate" / "materials_identified.json")
-        prior, _ = initial_field(scene, cfg.init)
+        # The calibration's own starting field: an MLLM asked again could answer otherwise.
+        prior = MaterialField.load(out / "calibrate" / "materials_init.json")
 
         log("predicting the held-out frames")
         cam = scene.camera.scaled(cfg.eval_scale)

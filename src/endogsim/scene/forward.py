@@ -21,6 +21,7 @@ import torch
 
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.flow import render_with_flow
+from endogsim.gaussians.rasterize_torch import world_to_camera
 from endogsim.gaussians.render import rasterize
 from endogsim.physics import GradMode, ObjectMaterials, drive_gaussians
 from endogsim.scene.folder import SimScene
@@ -79,9 +80,7 @@ def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t
     a still camera, whose world is its camera frame)."""
     if problem.viewmats is None:
         return means, covs
-    V = problem.viewmats[t].to(means)
-    R = V[:3, :3]
-    return means @ R.T + V[:3, 3], None if covs is None else R @ covs @ R.T
+    return world_to_camera(means, covs, problem.viewmats[t].to(means))
 
 
 def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
