@@ -367,20 +367,18 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
     labelled :data:`NOT_IDENTIFIABLE`; when the interval excludes it (the loss rises significantly on one
     side, and the prior lies there), the estimate replaces it, labelled :data:`ONE_SIDED`."""
     by = {(iv.object_id, iv.parameter): iv for iv in intervals}
-    E = final.E().detach().tolist()
-    nu = final.nu().detach().tolist()
     recs = []
-    for r in init.records:
+    for r in init.from_params(final).records:  # every estimate, then the priors kept
         if not r.rigid and r.object_id in final.object_ids:
-            s = final.slot(r.object_id)
-            sid = next(o for o in final.object_ids if final.slot(o) == s)
+            sid = next(o for o in final.object_ids if final.slot(o) == final.slot(r.object_id))
+            prior = init[r.object_id]
             values, labels = {}, {}
-            for name, estimate, prior in (("E", float(E[s]), r.E), ("nu", float(nu[s]), r.nu)):
-                iv = by.get((sid, name))
+            for name in ("E", "nu"):
+                iv, estimate, kept = by.get((sid, name)), getattr(r, name), getattr(prior, name)
                 if iv is None or iv.identifiable:
                     values[name], labels[name] = estimate, "identified"
-                elif iv.interval[0] <= prior <= iv.interval[1]:
-                    values[name], labels[name] = prior, NOT_IDENTIFIABLE
+                elif iv.interval[0] <= kept <= iv.interval[1]:
+                    values[name], labels[name] = kept, NOT_IDENTIFIABLE
                 else:
                     values[name], labels[name] = estimate, ONE_SIDED
             if labels["E"] == labels["nu"]:
@@ -390,7 +388,6 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
                 if "identified" in labels.values():
                     odd = next(k for k, v in labels.items() if v != "identified")
                     source = f"identified ({odd}: {labels[odd]})"
-            r = r.model_copy(update={"E": values["E"], "nu": values["nu"], "source": source, "confidence": None})
-            r = MaterialRecord.model_validate(r.model_dump())  # re-check physical bounds
+            r = MaterialRecord.model_validate(r.model_copy(update={**values, "source": source}).model_dump())
         recs.append(r)
     return MaterialField(recs, meta=dict(init.meta))
