@@ -229,10 +229,11 @@ def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: n
             continue
         tool = g0.subset(sel)
         core = grey_core(tool, scenario.grey_saturation)
-        tip, end, measured = fit_tool_capsule(tool.means[core].detach().double().numpy())
-        tip, end, radius = fit_tool_capsule(tool.means[core].detach().double().numpy(),
-                                            radius_bounds=scenario.instrument_radius)
-        if radius != measured:
+        pts = tool.means[core].detach().double().numpy()
+        tip, end, radius = fit_tool_capsule(pts)
+        measured = radius
+        if not scenario.instrument_radius[0] <= measured <= scenario.instrument_radius[1]:
+            tip, end, radius = fit_tool_capsule(pts, radius_bounds=scenario.instrument_radius)
             warnings.warn(f"instrument {oid}: its Gaussians measure a radius of {measured * 1e3:.1f} mm; the collider "
                           f"takes {radius * 1e3:.1f} mm, the nearest standard instrument size (the depth of a "
                           "monocular reconstruction scales every size)", DataWarning, stacklevel=2)
