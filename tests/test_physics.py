@@ -365,3 +365,72 @@ def test_anchored_slab_motion_converges_in_dt():
     scale = d100.abs().max()
     assert scale > 1e-4
     assert (d50 - d100).abs().max() < 0.04 * scale, ((d25 - d100).abs().max() / scale, (d50 - d100).abs().max() / scale)
+
+
+def _grasp_lift(grid: int, frames: int = 8):
+    """A 6-mm slab held at both ends, grasped in the middle by a 3-mm capsule that lifts it 4 mm.
+
+    Returns the mean lift (m) of the slab in 8 bins along its length, the particles, the held indices and
+    the result."""
+    from endogsim.physics.particles import capsule_collider, grasped_particles
+
+    parts = Particles.box((0.03, 0.04, 0.05), (0.07, 0.06, 0.056), 0.1 / grid / 2)
+    x = parts.x.double().numpy()
+    ends = (x[:, 0] < 0.034) | (x[:, 0] > 0.066)
+    tip, end = np.array([0.05, 0.05, 0.0575]), np.array([0.05, 0.05, 0.08])
+    tf = np.tile(np.eye(4), (frames, 1, 1))
+    tf[:, 2, 3] = np.linspace(0, 0.004, frames)
+    holds = grasped_particles(x, tip, 0.003, free=~ends)
+    scen = Scenario(BOX, anchors=[Anchor(particle_mask=torch.as_tensor(ends))],
+                    colliders=[capsule_collider(tip, end, 0.003, tf, 0.1 / grid, holds)])
+    res = simulate(parts, _mats(5e3, 0.4), scen, MPMConfig(grid_res=grid, damping=50.0), frames)
+    lift = (res.positions[-1] - parts.x)[:, 2].double().numpy()
+    bins = np.digitize(x[:, 0], np.linspace(0.03, 0.07, 9))
+    return np.array([lift[bins == k].mean() for k in range(1, 9)]), parts, holds, res
+
+
+def test_grasped_tissue_moves_with_the_instrument():
+    profile, parts, holds, res = _grasp_lift(50)
+    assert 20 < len(holds) < 200
+    # Held particles are carried exactly (a Dirichlet condition), the rest of the slab follows elastically.
+    lift = torch.linspace(0, 0.004, res.positions.shape[0])
+    assert torch.allclose(res.positions[:, holds, 2] - parts.x[holds, 2], lift[:, None].expand(-1, len(holds)), atol=1e-6)
+    assert 2e-3 < profile[3] < 4e-3 and abs(profile[0]) < 1e-4
+
+
+def test_grasp_lift_converges_under_refinement():
+    """The lift profile at grid 50 (3 cells across the slab) is within 15% of grid 100 with 8x the particles.
+    Measured: 12% at the centre (3.00 vs 3.41 mm). With sticky grid contact alone (no held particles) the
+    coarse grid lets the bite slip out: 1.44 vs 2.76 mm, 48%: why graspers hold particles."""
+    coarse, *_ = _grasp_lift(50)
+    fine, *_ = _grasp_lift(100)
+    assert np.abs(coarse - fine).max() < 0.15 * np.abs(fine).max(), (coarse, fine)
+
+
+def test_grasp_matches_the_pure_pytorch_reference_solver():
+    from endogsim.physics.reference import Capsule, MPMProblem, run_mpm
+
+    E, nu, rho = 2e4, 0.3, 1000.0
+    parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.05), 0.002)
+    T, r = 3, 0.003
+    a, b = np.array([0.05, 0.05, 0.051]), np.array([0.05, 0.05, 0.07])
+    offsets = np.zeros((T, 3))
+    offsets[:, 2] = np.linspace(0.0, 0.002, T)
+    x = parts.x.double().numpy()
+    holds = np.flatnonzero(np.linalg.norm(x - a, axis=1) <= r + 0.001)
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    P = len(parts)
+    ref = run_mpm(MPMProblem(
+        x=x, vol=parts.volume.double().numpy(), mu=np.full(P, mu), lam=np.full(P, lam),
+        density=np.full(P, rho), anchored=np.zeros(P, bool), box_lo=np.zeros(3), box_size=0.1, grid=32,
+        dt=2e-4, substeps=25, frames=T, gravity=np.zeros(3),
+        tools=[Capsule(a, b, r, offsets, holds=holds, hold_radius=r)]))  # Warp: one radius per collider
+    tf = np.tile(np.eye(4), (T, 1, 1))
+    tf[:, :3, 3] = offsets
+    line = torch.as_tensor(np.linspace(a, b, 301))
+    col = RigidCollider(points=line, transforms=torch.as_tensor(tf), radius=r, holds=holds)
+    res = simulate(parts, _mats(E, nu, rho), Scenario(BOX, colliders=[col]), MPMConfig(grid_res=32), T)
+    disp_ref = torch.as_tensor(ref.x[-1]) - parts.x.double()
+    disp = res.positions[-1].double() - parts.x.double()
+    assert disp_ref[:, 2].mean() > 2e-4  # the block was lifted
+    assert (disp - disp_ref).abs().max() < 2e-3 * disp_ref.abs().max(), (disp - disp_ref).abs().max()

@@ -102,6 +102,18 @@ def test_torn_tissue_is_caught_by_its_coverage_naming_frame_and_object(tiny_scen
     assert oid == 1 and frame >= 3 and drop > 0.05
     with pytest.raises(SimulationError, match=r"object 'tissue' covers less of its footprint from frame 3 on"):
         check_coverage(cov, p)
+    # The video's own masks cover the footprint throughout: the tear is all the simulation's.
+    assert cov.observed is not None and max(cov.observed[1][0] - o for o in cov.observed[1]) < 1e-3
+
+
+def test_a_coverage_drop_the_video_also_shows_is_not_a_tear():
+    from endogsim.scene.coverage import Coverage, check_coverage
+
+    sim = {1: [0.99, 0.985, 0.97]}  # 2% drop at frame 2
+    check_coverage(Coverage([0, 1, 2], sim, {1: 500}, observed={1: [1.0, 1.0, 0.985]}))  # the video shows 1.5%
+    assert Coverage([0, 1, 2], sim, {1: 500}, observed={1: [1.0, 1.0, 0.985]}).worst()[2] == pytest.approx(0.005)
+    with pytest.raises(SimulationError, match=r"by up to 2.0% more than the video shows, at frame 2"):
+        check_coverage(Coverage([0, 1, 2], sim, {1: 500}, observed={1: [1.0, 1.0, 1.0]}))
 
 
 # ------------------------------------------------------------------------------------------------- mass scaling
@@ -251,3 +263,32 @@ def test_real_clips_give_one_collider_per_instrument(tmp_path, clip, instruments
     for t in tools:
         assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius
 
+
+
+def test_a_grasping_tool_holds_the_free_tissue_its_jaws_close_on():
+    from endogsim.physics import Particles
+    from endogsim.scene.particles import tool_colliders
+    from endogsim.scene.schema import ToolCapsule
+
+    parts = Particles.box((0.0, 0.0, 0.0), (0.02, 0.02, 0.006), 0.001)
+    x = parts.x.double().numpy()
+    pinned = x[:, 0] > 0.0195  # the border band at +x
+    eye = np.eye(4)[None].repeat(3, 0).tolist()
+    tip = [0.0195, 0.01, 0.0075]  # the jaws at the pinned edge: only free particles may be held
+    grasper = ToolCapsule(object_id=7, tip=tip, end=[0.0195, 0.01, 0.03], radius=0.002, transforms=eye, contact="grasp")
+    probe = ToolCapsule(object_id=8, tip=tip, end=[0.0195, 0.01, 0.03], radius=0.002, transforms=eye)
+    held, pushed = tool_colliders([grasper, probe], parts, ~pinned, dx=0.002)
+    d = np.linalg.norm(x - np.asarray(tip), axis=1)
+    expect = np.flatnonzero((d <= 0.003) & ~pinned)
+    assert len(expect) > 5 and np.array_equal(held.holds.numpy(), expect)
+    assert pushed.holds is None  # a probe only pushes
+    with pytest.raises(ValueError, match="contact 'glue'"):
+        ToolCapsule(object_id=7, tip=tip, end=tip, radius=0.002, transforms=eye, contact="glue")
+
+
+def test_which_real_instruments_grasp_is_a_checked_choice():
+    from endogsim.pipeline.scene_from_recon import RealScenario
+
+    assert RealScenario().grasping == "graspers"
+    with pytest.raises(DataError, match="grasping 'some'"):
+        RealScenario(grasping="some")

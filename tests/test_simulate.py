@@ -142,6 +142,8 @@ def test_cli_grasp_from_file_and_clear_errors(tiny, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((tmp_path / "tug" / "summary.json").read_text())
     assert s["interaction"]["name"] == "tug" and s["displacement"]["tissue"]["max_mm"] > 0.1
+    # The grasp holds the tissue it closes on, which follows it the whole 3 mm (a Dirichlet condition).
+    assert s["resolved"]["grasp_particles"] > 0 and s["displacement"]["tissue"]["max_mm"] == pytest.approx(3.0, abs=0.05)
     assert np.allclose(s["resolved"]["grasp_point"][:2], [0.0, 0.0], atol=0.004)
     f.write_text(json.dumps({"name": "bad", "grasp": {"keyframes": [[0.2, 0, 0, 0]]}}))
     r = runner.invoke(app, ["simulate", str(tiny), "--interaction", str(f), "--out", str(tmp_path / "bad")])

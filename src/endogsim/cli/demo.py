@@ -105,18 +105,23 @@ def register(app: typer.Typer) -> None:
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
+        grasping: str = typer.Option("graspers", "--grasping", help="Which instruments hold the tissue their jaws "
+                                     "close on (the others push): graspers (by class) | all (data without "
+                                     "instrument classes, e.g. EndoNeRF pulling) | none."),
     ) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
         from endogsim.cli.common import console
         from endogsim.identify.config import IdentifyConfig
         from endogsim.pipeline.run import PipelineConfig, run_pipeline
+        from endogsim.pipeline.scene_from_recon import RealScenario
         from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
         ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
-                             interaction=None if interaction == "none" else interaction)
+                             interaction=None if interaction == "none" else interaction,
+                             scenario=RealScenario(grasping=grasping))
         state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer(), fresh=fresh)
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")
 
@@ -136,6 +141,9 @@ def register(app: typer.Typer) -> None:
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         recon_run: Optional[Path] = typer.Option(None, "--recon", help="Use this `endogsim reconstruct` run folder of "
                                                  "DATA instead of reconstructing into OUT/recon."),
+        grasping: str = typer.Option("graspers", "--grasping", help="Which instruments hold the tissue their jaws "
+                                     "close on (the others push): graspers (by class) | all (data without "
+                                     "instrument classes, e.g. EndoNeRF pulling) | none."),
     ) -> None:
         """Calibrate the materials on the first frames of a video, predict the held-out rest with the tracked
         instrument motion, and compare with the filmed frames (EPE against the observed flow, masked PSNR)
@@ -145,6 +153,7 @@ def register(app: typer.Typer) -> None:
         from endogsim.identify.config import IdentifyConfig
         from endogsim.io.atomic import write_json_atomic
         from endogsim.pipeline.run import PipelineConfig
+        from endogsim.pipeline.scene_from_recon import RealScenario
         from endogsim.pipeline.validate import (
             ValidateConfig,
             run_validate,
@@ -155,7 +164,8 @@ def register(app: typer.Typer) -> None:
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
         ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
-                             pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None))
+                             pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
+                                                     scenario=RealScenario(grasping=grasping)))
         res = run_validate(data, out, cfg, on_stage=_stage_printer(), log=lambda m: console.print(m))
         cols, rows = validation_table(res)
         print_table(f"Held-out frames {res['train_frames']}..{res['train_frames'] + res['test_frames'] - 1} of "

@@ -261,7 +261,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
         w = cov["worst"]
         where = f" (object id {w['object_id']}, frame {w['frame']})" if w.get("object_id") is not None and w["drop"] else ""
         parts.append(f"<h2>Tissue coverage</h2><p>largest drop of the rendered tissue coverage: "
-                     f"{100 * w['drop']:.2f}% of the footprint{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
+                     f"{100 * w['drop']:.2f}% of the footprint beyond what the video shows{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
                      "drop means the simulated tissue tore, and the run fails)</p>")
 
     if validation is not None:

@@ -207,7 +207,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
                      f"median {re['e_rel_error_median']:.3f}")
     lines.append(f"EPE {ev.epe:.3f} px (against the {ev.epe_reference}), PSNR {ev.psnr:.2f} dB, SSIM {ev.ssim:.4f}")
     oid, frame, drop = ev.coverage.worst()
-    lines.append(f"tissue coverage: largest drop {100 * drop:.2f}% of the footprint"
+    lines.append(f"tissue coverage: largest drop {100 * drop:.2f}% of the footprint beyond the video's own"
                  + (f" ({problem.spec.object(oid).name}, frame {frame})" if oid is not None and drop > 0 else ""))
     lines += [f"note: {n}" for n in result.notes]
     write_text_atomic(run / "summary.txt", "\n".join(lines) + "\n")

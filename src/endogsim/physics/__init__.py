@@ -37,10 +37,12 @@ Public API
 - :class:`Scenario` (box, gravity m/s^2, anchors, forces, colliders); :class:`Anchor` (world box and/or
   particle mask; "fixed" | "sticky" | "slip"); :class:`ExternalForce` (acceleration m/s^2 on a region over
   [t_start, t_end), or an impulse = velocity change); :class:`RigidCollider` (points [Pc,3] + transforms
-  [T,4,4], or positions [T,Pc,3]; kinematic, sticky contact).
+  [T,4,4], or positions [T,Pc,3]; kinematic, sticky contact; ``holds``: grasped particles).
 - :class:`Particles` (x [P,3] m, volume [P] m^3, object_ids [P], v [P,3] m/s or None);
   ``Particles.box(lo, hi, spacing, object_id)``; :func:`particles_from_gaussians`.
-- :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`.
+- :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`;
+  :func:`capsule_collider` the collider itself, :func:`grasped_particles` the tissue a grasper's jaws hold
+  (``RigidCollider.holds``: held particles move rigidly with the instrument).
 - :func:`simulate` (particles, materials, scenario, config, num_frames, v0=None) -> :class:`SimResult`
   (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
 - :func:`mpm_rollout` (particles, materials, scenario, config, num_frames, grad_mode
@@ -65,7 +67,8 @@ _EXPORTS = {
     "Scenario": "config",
     "ObjectMaterials": "materials",
     "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",
-    "capsule_collider_points": "particles", "drive_gaussians": "particles", "extrude_along_rays": "particles",
+    "GRASP_MARGIN": "particles", "capsule_collider": "particles", "capsule_collider_points": "particles",
+    "grasped_particles": "particles", "drive_gaussians": "particles", "extrude_along_rays": "particles",
     "particles_from_gaussians": "particles", "rotate_sh": "particles",
     "polar_rotation_torch": "polar",
     "SimResult": "rollout", "Simulator": "rollout", "mpm_rollout": "rollout", "simulate": "rollout",

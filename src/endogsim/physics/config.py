@@ -168,8 +168,13 @@ class RigidCollider:
 
     Give either per-frame rigid transforms of rest points, or per-frame positions of every point. Between
     two frames the points move at constant velocity. Grid nodes within ``radius`` of a collider point take
-    the collider velocity (sticky contact: pressing and grasping alike). The collider is not moved by the
-    tissue (it is kinematic).
+    the collider velocity (sticky contact). The collider is not moved by the tissue (it is kinematic).
+
+    A grasping instrument also ``holds`` particles: the tissue its jaws close on moves rigidly with it
+    (a Dirichlet condition on those particles, like an anchor that moves). Sticky grid contact alone cannot
+    lift tissue: a particle follows the tool only while most of its B-spline stencil lies in marked nodes,
+    so a lifted bite slips out of a coarse grid and stays held on a fine one (measured by ``endogsim bench
+    convergence``); a held particle follows the tool at every resolution.
 
     Attributes:
         points: [Pc, 3] rest points (metres, world) -- with ``transforms``.
@@ -177,23 +182,40 @@ class RigidCollider:
             (transforms[0] is usually the identity).
         positions: [T, Pc, 3] world positions per output frame (instead of points + transforms).
         radius: contact radius around each point (metres); default: one grid cell.
+        holds: [Ph] indices of the particles the instrument holds (a grasp; needs ``transforms``): each
+            moves rigidly with the instrument from its rest position (``Particles.x``, where it is at frame 0),
+            and the grid nodes within ``radius`` of it take the instrument's velocity, as around its own points.
     """
 
     points: torch.Tensor | np.ndarray | None = None
     transforms: torch.Tensor | np.ndarray | None = None
     positions: torch.Tensor | np.ndarray | None = None
     radius: float | None = None
+    holds: torch.Tensor | np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.holds is not None:
+            self.holds = torch.as_tensor(self.holds, dtype=torch.long).reshape(-1)
+            if self.transforms is None:
+                raise SimulationError("RigidCollider.holds needs transforms [T, 4, 4]: a held particle moves "
+                                      "rigidly with the instrument")
+
+    def moved(self, rest: torch.Tensor, from_first: bool = False) -> torch.Tensor:
+        """[T, N, 3] world positions per frame of points ``rest`` [N, 3] (metres) carried by the transforms;
+        ``from_first``: by the motion since frame 0 (T_t T_0^-1), for points given where they are at frame 0."""
+        T = torch.as_tensor(self.transforms, dtype=torch.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise SimulationError(f"RigidCollider.transforms has shape {tuple(T.shape)}, expected (T, 4, 4)")
+        if from_first:
+            T = T @ torch.linalg.inv(T[0])
+        return torch.einsum("tij,pj->tpi", T[:, :3, :3], rest.to(torch.float64)) + T[:, None, :3, 3]
 
     def trajectory(self) -> torch.Tensor:
         """[T, Pc, 3] world positions per frame (float64)."""
         if self.positions is not None:
             pos = torch.as_tensor(self.positions, dtype=torch.float64)
         elif self.points is not None and self.transforms is not None:
-            pts = torch.as_tensor(self.points, dtype=torch.float64)
-            T = torch.as_tensor(self.transforms, dtype=torch.float64)
-            if T.ndim != 3 or T.shape[1:] != (4, 4):
-                raise SimulationError(f"RigidCollider.transforms has shape {tuple(T.shape)}, expected (T, 4, 4)")
-            pos = torch.einsum("tij,pj->tpi", T[:, :3, :3], pts) + T[:, None, :3, 3]
+            pos = self.moved(torch.as_tensor(self.points, dtype=torch.float64))
         else:
             raise SimulationError("RigidCollider needs positions [T, Pc, 3] or points [Pc, 3] + transforms [T, 4, 4]")
         if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[1] == 0:
@@ -253,6 +275,20 @@ class Scenario:
         if self.settle not in ("keep", "subtract"):
             raise SimulationError(f"Scenario.settle {self.settle!r} is not keep|subtract")
 
+    def pinned(self, x: np.ndarray) -> np.ndarray:
+        """[P] bool: particles (rest positions ``x`` [P, 3], metres) that a "fixed" anchor pins (in its
+        particle mask, or starting in its box or region)."""
+        pinned = np.zeros(len(x), dtype=bool)
+        for a in self.anchors:
+            if a.kind == "fixed":
+                if a.particle_mask is not None:
+                    m = np.asarray(torch.as_tensor(a.particle_mask).cpu().numpy(), dtype=bool).reshape(-1)
+                    if m.shape[0] != len(x):
+                        raise SimulationError(f"Anchor.particle_mask has {m.shape[0]} entries for {len(x)} particles")
+                    pinned |= m
+                pinned |= a.contains(x)
+        return pinned
+
     def with_settling(self, frame_dt: float) -> "Scenario":
         """The scenario over settle_frames + T frames: colliders held at their frame-0 pose and forces
         shifted in time by the settling (the same world, seen from the start of the settling)."""
@@ -261,8 +297,13 @@ class Scenario:
         S, shift = self.settle_frames, self.settle_frames * frame_dt
         colliders = []
         for c in self.colliders:
-            traj = c.trajectory()
-            colliders.append(RigidCollider(positions=torch.cat([traj[:1].expand(S, -1, -1), traj]), radius=c.radius))
+            if c.transforms is not None and c.points is not None:
+                tf = torch.as_tensor(c.transforms, dtype=torch.float64)
+                colliders.append(replace(c, transforms=torch.cat([tf[:1].expand(S, -1, -1), tf])))
+            else:
+                traj = c.trajectory()
+                colliders.append(RigidCollider(positions=torch.cat([traj[:1].expand(S, -1, -1), traj]),
+                                               radius=c.radius))
         forces = [replace(f, t_start=f.t_start + shift, t_end=f.t_end + shift) for f in self.forces]
         return replace(self, colliders=colliders, forces=forces, settle_frames=0, settle_damping=None)
 

@@ -209,16 +209,36 @@ class MPMEngine:
         d.gravity = wp.vec3(*[float(g) * s for g in scenario.gravity])
         self.domain = d
 
-        # Colliders: trajectories per output frame, in sim units.
+        # Colliders: trajectories per output frame, in sim units. The particles an instrument holds are
+        # collider points too (the nodes around them take the instrument's velocity) and follow it exactly.
         self.colliders = []
+        held_index = np.full(self.P, -1, dtype=np.int32)
+        held_traj = []
+
+        def to_sim(traj: torch.Tensor) -> torch.Tensor:
+            return ((traj - torch.tensor(self.box.lo, dtype=torch.float64)) * s).float()
+
         for c in scenario.colliders:
             traj = c.trajectory()
             if traj.shape[0] < num_frames:
                 raise SimulationError(f"a collider trajectory has {traj.shape[0]} frames, the rollout needs {num_frames}")
-            traj_sim = ((traj - torch.tensor(self.box.lo, dtype=torch.float64)) * s).float()
+            if c.holds is not None and len(c.holds):
+                idx = c.holds.numpy()
+                if idx.min() < 0 or idx.max() >= self.P:
+                    raise SimulationError(f"RigidCollider.holds has particle indices outside [0, {self.P})")
+                if (held_index[idx] >= 0).any() or pinned[idx].any():
+                    raise SimulationError("a particle is held by two instruments, or held and anchored")
+                moved = c.moved(torch.from_numpy(x0_world[idx]), from_first=True)[:traj.shape[0]]
+                held_index[idx] = sum(len(h) for h in held_traj) + np.arange(len(idx), dtype=np.int32)
+                held_traj.append(moved.permute(1, 0, 2))
+                traj = torch.cat([traj, moved], 1)
+            traj_sim = to_sim(traj)
             radius = (c.radius * s) if c.radius is not None else 1.0 / self.inv_dx
             frames = [wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
             self.colliders.append((frames, float(radius)))
+        pm.held = wp.from_numpy(held_index, dtype=wp.int32, device=dev)
+        held_sim = to_sim(torch.cat(held_traj).permute(1, 0, 2)) if held_traj else torch.zeros(num_frames, 1, 3)
+        self.held_frames = [wp.array(held_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
 
     # -- set-up ----------------------------------------------------------------------------------------
     def _mask(self, mask, what: str) -> np.ndarray:
@@ -229,14 +249,8 @@ class MPMEngine:
         return m.astype(np.int32)
 
     def _pinned(self, scenario: Scenario, x0_world: np.ndarray) -> np.ndarray:
-        """[P] int32: particles of "fixed" anchors (in their mask, or starting in their box or region)."""
-        pinned = np.zeros(self.P, dtype=np.int32)
-        for a in scenario.anchors:
-            if a.kind == "fixed":
-                if a.particle_mask is not None:
-                    pinned |= self._mask(a.particle_mask, "Anchor.particle_mask")
-                pinned |= a.contains(x0_world).astype(np.int32)
-        return pinned
+        """[P] int32: particles of "fixed" anchors (:meth:`Scenario.pinned`)."""
+        return scenario.pinned(x0_world).astype(np.int32)
 
     def _node_conditions(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
         """Per-node boundary-condition kinds [n, n, n] and normals [n, n, n, 3] of the anchors' boxes and
@@ -327,7 +341,11 @@ class MPMEngine:
         wp.launch(K.grid_update, dim=tuple(int(h - l + 1) for l, h in zip(lo, hi)), device=dev, inputs=[
             buf.grid, buf.col, 1 if self.colliders else 0, self.domain, dt, damping_factor, v_max,
             wp.vec3i(*[int(v) for v in lo])])
-        wp.launch(K.g2p, dim=self.P, device=dev, inputs=[s_in, self.particles, mats, self.domain, buf.grid, dt, s_out])
+        held = K.HeldTargets()
+        held.x0, held.x1 = self.held_frames[frame], self.held_frames[frame + 1]
+        held.alpha_end, held.inv_frame_dt = (sub + 1) / step.substeps, 1.0 / self.cfg.frame_dt
+        wp.launch(K.g2p, dim=self.P, device=dev,
+                  inputs=[s_in, self.particles, mats, self.domain, buf.grid, held, dt, s_out])
 
     # -- untaped forward ---------------------------------------------------------------------------------
     def forward(self, x0: torch.Tensor, v0: torch.Tensor, mats: K.MaterialTable, step: Timestep,

@@ -46,12 +46,26 @@ class ParticleState:
 
 @wp.struct
 class ParticleModel:
-    """Per-particle data that a rollout never changes: volume, object id, pinned flag, force region (-1: none)."""
+    """Per-particle data that a rollout never changes: volume, object id, pinned flag, force region (-1:
+    none), index of the particle in :class:`HeldTargets` (-1: not held by an instrument)."""
 
     vol: wp.array(dtype=float)
     obj: wp.array(dtype=wp.int32)
     pinned: wp.array(dtype=wp.int32)
     force_region: wp.array(dtype=wp.int32)
+    held: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class HeldTargets:
+    """Where the particles an instrument holds are during one substep: their positions at the two output
+    frames around it (x0, x1; they move at constant velocity in between), the fraction of the frame reached
+    at the end of the substep, and 1 / frame interval."""
+
+    x0: wp.array(dtype=wp.vec3)
+    x1: wp.array(dtype=wp.vec3)
+    alpha_end: float
+    inv_frame_dt: float
 
 
 @wp.struct
@@ -345,10 +359,14 @@ def g2p(
     mats: MaterialTable,
     domain: Domain,
     grid: GridState,
+    held: HeldTargets,
     dt: float,
     out: ParticleState,
 ):
-    """Grid to particle: velocity, APIC affine matrix, F update with optional von Mises plasticity, advection."""
+    """Grid to particle: velocity, APIC affine matrix, F update with optional von Mises plasticity, advection.
+
+    Pinned particles stay where they are and held ones go where their instrument takes them (Dirichlet
+    conditions on particles); their F still follows the grid."""
     p = wp.tid()
     inv_dx = domain.inv_dx
     xp = state.x[p]
@@ -383,6 +401,11 @@ def g2p(
     if particles.pinned[p] != 0:
         x_new = xp
         new_v = wp.vec3(0.0)
+    h = particles.held[p]
+    if h >= 0:
+        step = held.x1[h] - held.x0[h]
+        x_new = held.x0[h] + held.alpha_end * step
+        new_v = step * held.inv_frame_dt
     # Keep every particle inside the padded box (its stencil then always lies inside the grid).
     x_lo = domain.x_lo
     x_hi = domain.x_hi

@@ -319,3 +319,36 @@ def capsule_collider_points(tip, end, radius: float, dx: float) -> tuple[np.ndar
         pts = a + np.linspace(0, 1, n)[:, None] * ab
         rho = max(radius, rho)
     return pts, float(rho)
+
+
+#: A grasping instrument's jaws hold the tissue within this distance of its tip sphere (metres): the
+#: bite of a closed grasper, a physical size, so the held tissue is the same at every discretisation.
+GRASP_MARGIN = 1.0e-3
+
+
+def grasped_particles(x, tip, radius: float, free=None, margin: float = GRASP_MARGIN) -> np.ndarray:
+    """Indices of the particles a grasper holds: within ``radius + margin`` of its ``tip`` (the jaws).
+
+    Args:
+        x: [P, 3] particle rest positions (metres, world).
+        tip: [3] the instrument's tip at frame 0 (metres); radius: its capsule radius (metres).
+        free: [P] bool, particles that may be held (not anchored); default all.
+    Returns:
+        [Ph] int64 indices, ascending (empty when the jaws touch no tissue).
+    """
+    x = np.asarray(torch.as_tensor(x).detach().cpu().numpy(), float)
+    near = np.linalg.norm(x - np.asarray(tip, float), axis=1) <= radius + margin
+    if free is not None:
+        near &= np.asarray(torch.as_tensor(free).cpu().numpy(), bool).reshape(-1)
+    return np.flatnonzero(near)
+
+
+def capsule_collider(tip, end, radius: float, transforms, dx: float, holds=None):
+    """A :class:`~endogsim.physics.config.RigidCollider` for a capsule instrument (``tip``-``end``, ``radius``
+    metres, frame 0) moved by ``transforms`` [T, 4, 4] on a grid of cell ``dx`` metres; ``holds``: the
+    particle indices it grasps (:func:`grasped_particles`), or None for a tool that only pushes."""
+    from endogsim.physics.config import RigidCollider
+
+    pts, rho = capsule_collider_points(tip, end, radius, dx)
+    return RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(transforms), radius=rho,
+                         holds=None if holds is None else torch.as_tensor(holds))

@@ -31,13 +31,16 @@ class Capsule:
 
     ``offsets`` [T, 3] is the translation of the tool at each rendered frame (metres, offsets[0] = 0);
     between frames it moves at constant velocity. Grid nodes inside the capsule take the tool velocity
-    (sticky contact: pressing and grasping alike).
+    (sticky contact). A grasping tool ``holds`` particles ([Ph] indices): they move with it from their rest
+    positions, and nodes within ``hold_radius`` (metres) of them take its velocity too.
     """
 
     a: np.ndarray
     b: np.ndarray
     radius: float
     offsets: np.ndarray
+    holds: np.ndarray | None = None
+    hold_radius: float = 0.0
 
 
 @dataclass
@@ -142,7 +145,8 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
     for tool in p.tools:
         a = torch.tensor(tool.a, dtype=dtype) - lo
         b = torch.tensor(tool.b, dtype=dtype) - lo
-        in_tool.append((a, b, float(tool.radius), torch.tensor(tool.offsets, dtype=dtype)))
+        holds = torch.as_tensor(tool.holds if tool.holds is not None else [], dtype=torch.long)
+        in_tool.append((a, b, float(tool.radius), torch.tensor(tool.offsets, dtype=dtype), holds, tool.hold_radius))
     # Boundary: zero velocity in the outer 2 cells of the grid (a closed box).
     ijk = torch.stack(torch.meshgrid(*(torch.arange(n1),) * 3, indexing="ij"), -1).reshape(-1, 3)
     wall = ((ijk < 2) | (ijk > n - 2)).any(1)
@@ -175,7 +179,7 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             gv[has] = gmv[has] / gm[has, None]
             gv[has] += dt * g
             gv *= decay
-            for a, b, r, offs in in_tool:
+            for a, b, r, offs, holds, r_hold in in_tool:
                 vel = (offs[frame] - offs[frame - 1]) / (p.substeps * dt)
                 # Position of the tool during this substep (constant velocity between frames).
                 shift = offs[frame - 1] + vel * (sub * dt)
@@ -183,6 +187,8 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
                 tpar = (((nodes - a - shift) @ ab) / (ab @ ab)).clamp(0, 1)
                 d = torch.linalg.norm(nodes - (a + shift + tpar[:, None] * ab), dim=1)
                 inside = d < r
+                if len(holds):
+                    inside |= (torch.cdist(nodes, x0[holds] + shift) <= r_hold).any(1)
                 gv[inside] = vel
             gv[held] = 0
             gv[wall] = 0
@@ -193,6 +199,12 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
             v[anchored] = 0
             C[anchored] = 0
             x[anchored] = x0[anchored]
+            # Held particles: carried by their tool (its offset at the end of this substep).
+            for a, b, r, offs, holds, r_hold in in_tool:
+                if len(holds):
+                    vel = (offs[frame] - offs[frame - 1]) / (p.substeps * dt)
+                    x[holds] = x0[holds] + offs[frame - 1] + vel * ((sub + 1) * dt)
+                    v[holds] = vel
             if not torch.isfinite(x).all():
                 raise SimulationError(f"MPM diverged (NaN/inf) at frame {frame}: lower dt or E")
             if ((x < pad) | (x > L - pad)).any():

@@ -8,8 +8,9 @@ sections that may be combined:
              dz > 0 pushes into the tissue), optionally after moving the tool tip onto a surface point.
   ``force``  a body acceleration (m/s^2, world) on the particles within ``radius`` metres of a surface
              point, over the time window [t_start, t_end) seconds.
-  ``grasp``  a small sticky sphere (radius metres) on a surface point that follows keyframes: grasp and
-             pull; with ``with_tool`` the scene's tool tip goes to the grasp point and moves with it.
+  ``grasp``  a sphere (radius metres) on a surface point that follows keyframes and holds the tissue
+             within it (and 1 mm beyond): grasp and pull; with ``with_tool`` the scene's tool tip goes to
+             the grasp point and moves with it.
 
 Surface points are given as ``at = [u, v]`` in [-1, 1]^2 over the (image-plane) bounding box of the
 deformable particles (of ``object`` if named), and lie on the side facing the camera; or as a world
@@ -102,7 +103,8 @@ class ForceSpec(Located):
 
 
 class GraspSpec(Located):
-    """A sticky sphere of ``radius`` (m) on the point following ``keyframes`` (grasp and pull)."""
+    """A sphere of ``radius`` (m) on the point following ``keyframes`` that holds the tissue it closes on
+    (grasp and pull)."""
 
     radius: float = Field(0.003, gt=0, le=0.05)
     keyframes: Keyframes

@@ -36,6 +36,7 @@ import shutil
 import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -76,6 +77,10 @@ class RealScenario:
         grey_saturation: an instrument's Gaussians with saturation (max - min) / max of their colour below
             this are its metal core (the collider is fitted to those).
         clearance: a collider pushed out of the tissue ends this far (in grid cells) from the nearest particle.
+        grasping: which instruments hold the tissue their jaws close on (``ToolCapsule.contact`` "grasp"; the
+            others only push): "graspers", those whose class names a grasper (CholecSeg8K class 31); "all",
+            for data without instrument classes (the fallback segmentation) where every instrument grasps,
+            as in EndoNeRF pulling; "none".
         instrument_radius: (lo, hi) metres: a fitted shaft radius is clipped to the standard instrument sizes,
             5 mm laparoscopic (2.5 mm) to 8.5 mm robotic (4.25 mm) shafts. Depth from a monocular
             reconstruction scales every size (EndoNeRF pulling's 8 mm da Vinci instruments measure 11-14 mm
@@ -95,6 +100,11 @@ class RealScenario:
     mass_scaling: float = 4.0
     grey_saturation: float = 0.3
     clearance: float = 0.25
+    grasping: Literal["graspers", "all", "none"] = "graspers"
+
+    def __post_init__(self) -> None:
+        if self.grasping not in ("graspers", "all", "none"):
+            raise DataError(f"scenario.grasping {self.grasping!r} must be graspers|all|none")
     instrument_radius: tuple[float, float] = (0.0025, 0.00425)
 
 
@@ -390,8 +400,14 @@ def scene_from_reconstruction(
             transforms = np.asarray(gt_tool.transforms, dtype=np.float64)[:T]
         else:
             transforms = tool_tf[oid]
+        if gt_tool is not None:
+            contact = gt_tool.contact
+        else:
+            klass = next((o["class"] for o in objects if o["id"] == oid), "")
+            grasps = scenario.grasping == "all" or (scenario.grasping == "graspers" and "grasp" in str(klass))
+            contact = "grasp" if grasps else "sticky"
         tools.append({"object_id": oid, "tip": np.asarray(tip).tolist(), "end": np.asarray(end).tolist(),
-                      "radius": float(radius), "transforms": transforms.tolist(), "contact": "sticky"})
+                      "radius": float(radius), "transforms": transforms.tolist(), "contact": contact})
     doc["scenario"]["tools"] = tools
     doc["colliders"] = [f.to_json() for f in fits]
     if gt is None:

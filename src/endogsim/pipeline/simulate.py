@@ -113,8 +113,9 @@ def build_interaction(problem, inter: Interaction):
     Returns:
         (new problem, info dict with the resolved world points in metres).
     """
-    from endogsim.physics import ExternalForce, RigidCollider, capsule_collider_points
+    from endogsim.physics import GRASP_MARGIN, ExternalForce, capsule_collider, grasped_particles
     from endogsim.scene.motion import tool_offsets, translations
+    from endogsim.scene.particles import tool_colliders
 
     T = inter.frames
     dx = problem.scenario.box.size / problem.mpm.grid_res
@@ -148,12 +149,18 @@ def build_interaction(problem, inter: Interaction):
             info["tool_point"] = p.tolist()
         driven[tid] = start + tool_offsets([list(k) for k in inter.tool.keyframes], T)
     grasp_collider = None
+    free = ~problem.scenario.pinned(problem.particles.x.double().numpy())
     if inter.grasp is not None:
         p = surface_point(problem, inter.grasp)
         info["grasp_point"] = p.tolist()
         off = tool_offsets([list(k) for k in inter.grasp.keyframes], T)
-        pts, rad = capsule_collider_points(p, p, inter.grasp.radius, dx)
-        grasp_collider = RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(translations(off)), radius=rad)
+        # The grasp holds the free tissue within its sphere (and GRASP_MARGIN) and carries it along.
+        holds = grasped_particles(problem.particles.x, p, inter.grasp.radius, free=free)
+        if len(holds) == 0:
+            raise DataError(f"grasp: no free tissue particle within {inter.grasp.radius + GRASP_MARGIN} m of "
+                            f"{p.tolist()}")
+        info["grasp_particles"] = int(len(holds))
+        grasp_collider = capsule_collider(p, p, inter.grasp.radius, translations(off), dx, holds)
         if inter.grasp.with_tool and tools:
             tid = first_tool(None)
             if tid in driven:
@@ -166,18 +173,18 @@ def build_interaction(problem, inter: Interaction):
     if inter.grasp is not None:
         _check_inside_box(problem, inter, "the grasp", "point", np.asarray(info["grasp_point"]) + off)
 
-    colliders, tool_tf, hidden = [], {}, []
-    for tid, t in tools.items():
+    tool_tf, hidden = {}, []
+    for tid in tools:
         if tid in driven:
-            tf = torch.as_tensor(translations(driven[tid]))
+            tool_tf[tid] = torch.as_tensor(translations(driven[tid]))
         elif inter.scene_tool == "static":
-            tf = torch.as_tensor(translations(np.zeros((T, 3))))
+            tool_tf[tid] = torch.as_tensor(translations(np.zeros((T, 3))))
         else:
             hidden.append(tid)
-            continue
-        pts, rad = capsule_collider_points(t.tip, t.end, t.radius, dx)
-        colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=tf, radius=rad))
-        tool_tf[tid] = tf
+    if grasp_collider is not None:  # the grasp's tissue is not also the bite of a grasping tool beside it
+        free = free.copy()
+        free[grasp_collider.holds.numpy()] = False
+    colliders = tool_colliders([tools[tid] for tid in tool_tf], problem.particles, free, dx, tool_tf)
     if grasp_collider is not None:
         colliders.append(grasp_collider)
 

@@ -35,14 +35,12 @@ from endogsim.physics import (
     GaussianBinding,
     MPMConfig,
     Particles,
-    RigidCollider,
     Scenario,
     SimBox,
     Simulator,
     bind_gaussians,
-    capsule_collider_points,
 )
-from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces
+from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces, tool_colliders
 from endogsim.scene.schema import SceneSpec, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
@@ -175,14 +173,13 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     filled = build_particles(gaussian_surfaces(g, deformable), spec, camera, ident)
     particles = filled.particles
 
-    colliders, tool_tf = [], {}
+    tool_tf = {}
     for tool in sc.tools:
         tf = torch.tensor(tool.transforms, dtype=torch.float64)[:T]
         if tf.shape[0] < T:
             raise DataError(f"{folder}: tool {tool.object_id} has {tf.shape[0]} transforms for {T} frames")
-        pts, rad = capsule_collider_points(tool.tip, tool.end, tool.radius, dx)
-        colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=tf, radius=rad))
         tool_tf[tool.object_id] = tf
+    colliders = tool_colliders(sc.tools, particles, ~filled.pinned, dx, tool_tf)
     scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=filled.anchors(),
                         forces=scenario_forces(spec, particles), colliders=colliders,
                         settle_frames=int(sc.settle_frames), settle="subtract", settle_damping=sc.settle_damping,

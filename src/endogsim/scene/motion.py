@@ -44,10 +44,11 @@ def tool_offsets(keyframes: list[list[float]], frames: int) -> np.ndarray:
     return out
 
 
-def tool_capsule(object_id: int, tip, end, radius: float, offsets: np.ndarray) -> ToolCapsule:
-    """A capsule tool (``tip``/``end`` [3] metres at frame 0, ``radius`` metres) translated by ``offsets`` [T, 3]."""
+def tool_capsule(object_id: int, tip, end, radius: float, offsets: np.ndarray, contact: str = "sticky") -> ToolCapsule:
+    """A capsule tool (``tip``/``end`` [3] metres at frame 0, ``radius`` metres) translated by ``offsets`` [T, 3];
+    ``contact`` "sticky" or "grasp" (:class:`ToolCapsule`)."""
     return ToolCapsule(object_id=int(object_id), tip=[float(v) for v in tip], end=[float(v) for v in end],
-                       radius=float(radius), transforms=translations(offsets).tolist())
+                       radius=float(radius), transforms=translations(offsets).tolist(), contact=contact)
 
 
 def tool_speed(tools: list[ToolCapsule], frame_dt: float) -> float:

@@ -26,11 +26,13 @@ import torch
 from endogsim.errors import DataError, DataWarning
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
-from endogsim.physics import Anchor, ExternalForce, Particles
+from endogsim.physics import Anchor, ExternalForce, Particles, RigidCollider
 from endogsim.physics.filling import SurfaceMap, fill_behind_surface
-from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings
+from endogsim.physics.particles import capsule_collider, grasped_particles
+from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings, ToolCapsule
 
-__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "scenario_forces"]
+__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "scenario_forces",
+           "tool_colliders"]
 
 
 @dataclass
@@ -175,4 +177,26 @@ def scenario_forces(spec: SceneSpec, particles: Particles) -> list[ExternalForce
                             f"within {f['radius']} m of {f['center']}")
         out.append(ExternalForce(acceleration=tuple(float(v) for v in f["velocity"]), particle_mask=torch.as_tensor(mask),
                                  t_start=float(f.get("t_start", 0.0)), impulse=True))
+    return out
+
+
+def tool_colliders(tools: list[ToolCapsule], particles: Particles, free: np.ndarray, dx: float,
+                   transforms: dict[int, torch.Tensor | np.ndarray] | None = None) -> list[RigidCollider]:
+    """One :class:`~endogsim.physics.RigidCollider` per capsule tool on a grid of cell ``dx`` metres; a
+    "grasp" tool holds the ``free`` particles its jaws close on at frame 0
+    (:func:`~endogsim.physics.particles.grasped_particles`), the same tissue at any particle spacing.
+
+    Args:
+        tools: the scene's tools. particles: the simulated particles; free: [P] bool, those not pinned.
+        transforms: {tool id: [T, 4, 4]} to use instead of the tools' own (frame 0 places the tool).
+    """
+    out, taken = [], np.zeros(len(particles), bool)
+    for tool in tools:
+        tf = np.asarray(tool.matrices() if transforms is None else transforms[tool.object_id], dtype=np.float64)
+        holds = None
+        if tool.contact == "grasp":
+            tip = tf[0, :3, :3] @ np.asarray(tool.tip, float) + tf[0, :3, 3]
+            holds = grasped_particles(particles.x, tip, tool.radius, free=np.asarray(free, bool) & ~taken)
+            taken[holds] = True
+        out.append(capsule_collider(tool.tip, tool.end, tool.radius, tf, dx, holds))
     return out

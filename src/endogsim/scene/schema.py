@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -60,14 +60,21 @@ class SceneObject:
 @dataclass
 class ToolCapsule:
     """A kinematic tool collider: capsule from ``tip`` to ``end`` (metres, frame 0) of ``radius`` (metres);
-    ``transforms`` [T][4][4] rigid world transforms per frame (frame 0 = identity); sticky contact."""
+    ``transforms`` [T][4][4] rigid world transforms per frame (frame 0 = identity). ``contact``: "sticky"
+    (the capsule pushes the tissue it touches) or "grasp" (a grasper: besides pushing, its jaws hold the
+    tissue within :data:`endogsim.physics.particles.GRASP_MARGIN` of its tip sphere at frame 0, which then
+    moves rigidly with it)."""
 
     object_id: int
     tip: list[float]
     end: list[float]
     radius: float
     transforms: list[list[list[float]]]
-    contact: str = "sticky"
+    contact: Literal["sticky", "grasp"] = "sticky"
+
+    def __post_init__(self) -> None:
+        if self.contact not in ("sticky", "grasp"):
+            raise ValueError(f"tool {self.object_id}: contact {self.contact!r} is not sticky|grasp")
 
     def matrices(self) -> np.ndarray:
         """[T, 4, 4] float64 world transforms per frame."""

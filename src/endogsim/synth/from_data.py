@@ -185,7 +185,7 @@ def build_from_data(data_dir, name: str | None = None, seed: int = 0, frames: in
     tool_g = proc.tool_gaussians(tip, end, radius, 0.6 * float(np.median(foot)) * 2, tool_obj_id, seed=seed,
                                  jaw=interaction == "pull")
     offsets = tool_offsets(kf, T)
-    tool = tool_capsule(tool_obj_id, tip, end, radius, offsets)
+    tool = tool_capsule(tool_obj_id, tip, end, radius, offsets, contact="grasp" if interaction == "pull" else "sticky")
 
     # Cubic sim box around the tissue's slab (its surface and the same surface THICKNESS behind) and the
     # tool's path, with room for the walls.

@@ -44,15 +44,19 @@ from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
     MPMConfig,
     ObjectMaterials,
-    RigidCollider,
     Scenario,
     SimBox,
     bind_gaussians,
-    capsule_collider_points,
     drive_gaussians,
     simulate,
 )
-from endogsim.scene.particles import SceneParticles, build_particles, gaussian_surfaces, scenario_forces
+from endogsim.scene.particles import (
+    SceneParticles,
+    build_particles,
+    gaussian_surfaces,
+    scenario_forces,
+    tool_colliders,
+)
 from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
 from endogsim.synth.scenes import BuiltScene, build_procedural
 from endogsim.synth.suite import GENERATOR_REVISION, check_size
@@ -87,11 +91,7 @@ def ground_truth_problem(b: BuiltScene) -> tuple[SceneParticles, ObjectMaterials
         if not o.rigid:
             model[o.id] = o.model
     materials = ObjectMaterials.of(E, nu, rho, model)
-    colliders = []
-    for tool in b.tools:
-        pts, radius = capsule_collider_points(tool.tip, tool.end, tool.radius, b.box_size / gt.grid)
-        colliders.append(RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(tool.matrices()),
-                                       radius=radius))
+    colliders = tool_colliders(b.tools, filled.particles, ~filled.pinned, b.box_size / gt.grid)
     scenario = Scenario(SimBox(tuple(float(v) for v in b.box_lo), float(b.box_size)),
                         gravity=tuple(float(v) for v in b.gravity), anchors=filled.anchors(),
                         forces=scenario_forces(spec, filled.particles), colliders=colliders,

@@ -155,7 +155,9 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
                                E=float(t["E"]), nu=float(t["nu"]), density=float(t["density"])))
     tip, end = np.array(t["tip"], float), np.array(t["end"], float)
     tool_g = proc.tool_gaussians(tip, end, t["radius"], 0.8 * g_sp, t["id"], seed=seed, jaw=t.get("jaw", False))
-    tool = tool_capsule(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T))
+    # A grasper ("jaw") holds the tissue its jaws close on; a probe only pushes.
+    tool = tool_capsule(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T),
+                        contact="grasp" if t.get("jaw", False) else "sticky")
 
     tissue = Gaussians.concat(parts_g)
     allg = Gaussians.concat([tissue, tool_g])
