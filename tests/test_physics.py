@@ -298,10 +298,23 @@ def test_plasticity_keeps_the_elastic_strain_inside_the_yield_surface():
     assert (e_el - e_el.mean(1, keepdim=True)).norm(dim=1).max() > 2 * yield_stress / (2 * mu)  # it did yield
 
 
+def _reference_run(parts: Particles, tool, T: int, E: float, nu: float, rho: float):
+    """The pure-PyTorch reference solver on ``parts`` (no gravity, no anchors) with one capsule ``tool``:
+    grid 32 over the 0.1-m box, 25 substeps of 0.2 ms per frame."""
+    from endogsim.physics.reference import MPMProblem, run_mpm
+
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    P = len(parts)
+    return run_mpm(MPMProblem(
+        x=parts.x.double().numpy(), vol=parts.volume.double().numpy(), mu=np.full(P, mu), lam=np.full(P, lam),
+        density=np.full(P, rho), anchored=np.zeros(P, bool), box_lo=np.zeros(3), box_size=0.1, grid=32,
+        dt=2e-4, substeps=25, frames=T, gravity=np.zeros(3), tools=[tool]))
+
+
 def test_matches_the_pure_pytorch_reference_solver():
     # The pure-PyTorch reference solver (endogsim.physics.reference, float64, same MLS-MPM) and this
     # Warp solver must agree on a scene both can express: an elastic block pushed by a moving capsule.
-    from endogsim.physics.reference import Capsule, MPMProblem, run_mpm
+    from endogsim.physics.reference import Capsule
 
     E, nu, rho = 2e4, 0.3, 1000.0
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.06), 0.002)
@@ -309,12 +322,7 @@ def test_matches_the_pure_pytorch_reference_solver():
     a, b = np.array([0.0365, 0.05, 0.035]), np.array([0.0365, 0.05, 0.065])
     offsets = np.zeros((T, 3))
     offsets[:, 0] = np.linspace(0.0, 0.002, T)
-    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
-    P = len(parts)
-    ref = run_mpm(MPMProblem(
-        x=parts.x.double().numpy(), vol=parts.volume.double().numpy(), mu=np.full(P, mu), lam=np.full(P, lam),
-        density=np.full(P, rho), anchored=np.zeros(P, bool), box_lo=np.zeros(3), box_size=0.1, grid=32,
-        dt=2e-4, substeps=25, frames=T, gravity=np.zeros(3), tools=[Capsule(a, b, r, offsets)]))
+    ref = _reference_run(parts, Capsule(a, b, r, offsets), T, E, nu, rho)
     # The capsule as a dense line of collider points (a union of balls of radius r ~ the capsule).
     line = torch.as_tensor(np.linspace(a, b, 301))
     traj = line[None] + torch.as_tensor(offsets)[:, None]
@@ -408,7 +416,7 @@ def test_grasp_lift_converges_under_refinement():
 
 
 def test_grasp_matches_the_pure_pytorch_reference_solver():
-    from endogsim.physics.reference import Capsule, MPMProblem, run_mpm
+    from endogsim.physics.reference import Capsule
 
     E, nu, rho = 2e4, 0.3, 1000.0
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.05), 0.002)
@@ -416,15 +424,9 @@ def test_grasp_matches_the_pure_pytorch_reference_solver():
     a, b = np.array([0.05, 0.05, 0.051]), np.array([0.05, 0.05, 0.07])
     offsets = np.zeros((T, 3))
     offsets[:, 2] = np.linspace(0.0, 0.002, T)
-    x = parts.x.double().numpy()
-    holds = np.flatnonzero(np.linalg.norm(x - a, axis=1) <= r + 0.001)
-    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
-    P = len(parts)
-    ref = run_mpm(MPMProblem(
-        x=x, vol=parts.volume.double().numpy(), mu=np.full(P, mu), lam=np.full(P, lam),
-        density=np.full(P, rho), anchored=np.zeros(P, bool), box_lo=np.zeros(3), box_size=0.1, grid=32,
-        dt=2e-4, substeps=25, frames=T, gravity=np.zeros(3),
-        tools=[Capsule(a, b, r, offsets, holds=holds, hold_radius=r)]))  # Warp: one radius per collider
+    holds = np.flatnonzero(np.linalg.norm(parts.x.double().numpy() - a, axis=1) <= r + 0.001)
+    # Warp has one contact radius per collider: the held particles' is the capsule's.
+    ref = _reference_run(parts, Capsule(a, b, r, offsets, holds=holds, hold_radius=r), T, E, nu, rho)
     tf = np.tile(np.eye(4), (T, 1, 1))
     tf[:, :3, 3] = offsets
     line = torch.as_tensor(np.linspace(a, b, 301))
