@@ -107,7 +107,13 @@ def test_torn_tissue_is_caught_by_its_coverage_naming_frame_and_object(tiny_scen
 
 
 def test_a_coverage_drop_the_video_also_shows_is_not_a_tear():
-    from endogsim.scene.coverage import Coverage, check_coverage
+    from endogsim.scene.coverage import Coverage, check_coverage, observed_objects
+
+    # What the video covers: any of the scene's objects, whatever their ids (a real video's tissue is object
+    # 0), not background or an unknown label; masks are resized without blending labels.
+    labels = np.array([[0, 0, 31, 50], [0, 0, 31, 50]])
+    assert observed_objects(labels, [0, 31], 4, 2).tolist() == [[True, True, True, False]] * 2
+    assert observed_objects(labels, [0, 31], 2, 1).tolist() == [[True, True]]
 
     sim = {1: [0.99, 0.985, 0.97]}  # 2% drop at frame 2
     check_coverage(Coverage([0, 1, 2], sim, {1: 500}, observed={1: [1.0, 1.0, 0.985]}))  # the video shows 1.5%

@@ -10,8 +10,10 @@ of the object's footprint that the simulated tissue still covers:
     coverage_o(t)  = mean over footprint_o(t) of the simulated tissue's alpha at frame t (any deformable
                      object counts: tissues may slide over each other).
 
-    observed_o(t)  = share of footprint_o(t) that the video's object masks label as any object (tissue or an
-                     instrument in front of it; 0 = background), when the scene has masks.
+    observed_o(t)  = share of footprint_o(t) that the video's object masks label as one of the scene's
+                     objects (tissue, or an instrument in front of it; not background or an unknown label),
+                     when the scene has masks. (A real video's tissue may be object 0: "not background" is
+                     "one of the objects", not "label > 0".)
 
 Seen by the same camera, the rest state and the simulation differ only by the simulated motion, so a moving
 endoscope changes nothing. A drop counts only beyond what the video itself shows: a sheet lifted into a tent
@@ -37,7 +39,7 @@ from endogsim.gaussians.render import rasterize
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import frame_gaussians, in_view
 
-__all__ = ["COVERAGE_DROP_LIMIT", "Coverage", "tissue_coverage", "check_coverage"]
+__all__ = ["COVERAGE_DROP_LIMIT", "Coverage", "tissue_coverage", "check_coverage", "observed_objects"]
 
 #: The largest drop of a tissue's rendered coverage (fraction of its footprint) a simulation may show.
 COVERAGE_DROP_LIMIT = 0.01
@@ -119,6 +121,7 @@ def tissue_coverage(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     view = Camera(camera.K, camera.width, camera.height) if problem.viewmats is not None else camera
     per_object: dict[int, list[float]] = {oid: [] for oid in ids}
     observed: dict[int, list[float]] | None = None if problem.object_masks is None else {oid: [] for oid in ids}
+    object_ids = [o.id for o in problem.spec.objects]
     footprint_pixels: dict[int, int] = {}
     for t in frames:
         m, c = in_view(problem, rest_means, cov0, t)
@@ -133,18 +136,19 @@ def tissue_coverage(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
                 footprint_pixels[oid] = int(foot.sum())
             per_object[oid].append(float(alpha[foot].mean()) if foot.any() else 1.0)
             if observed is not None:
-                seen = _resize_labels(problem.object_masks[t], view.width, view.height) != 0
+                seen = observed_objects(problem.object_masks[t], object_ids, view.width, view.height)
                 observed[oid].append(float(seen[foot].mean()) if foot.any() else 1.0)
     return Coverage(frames, per_object, footprint_pixels, observed)
 
 
-def _resize_labels(labels: np.ndarray, width: int, height: int) -> np.ndarray:
-    """[H, W] integer labels resized to ``height`` x ``width`` (nearest: labels do not blend)."""
+def observed_objects(labels: np.ndarray, object_ids: list[int], width: int, height: int) -> np.ndarray:
+    """[height, width] bool: pixels of an object mask ``labels`` [H, W] (resized nearest: labels do not
+    blend) that show one of ``object_ids``."""
     import cv2
 
-    if labels.shape == (height, width):
-        return labels
-    return cv2.resize(labels.astype(np.float32), (width, height), interpolation=cv2.INTER_NEAREST).astype(labels.dtype)
+    if labels.shape != (height, width):
+        labels = cv2.resize(labels.astype(np.float32), (width, height), interpolation=cv2.INTER_NEAREST)
+    return np.isin(labels.astype(np.int64), np.asarray(object_ids, np.int64))
 
 
 def check_coverage(cov: Coverage, problem: SimScene | None = None, limit: float = COVERAGE_DROP_LIMIT) -> None:
