@@ -28,6 +28,11 @@ def _fmt_optional(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
+#: ``--grasping`` of ``run`` and ``validate`` (:attr:`endogsim.pipeline.scene_from_recon.RealScenario.grasping`).
+_GRASPING_HELP = ("Which instruments hold the tissue their jaws close on (the others push): graspers (by class) | "
+                  "all (data without instrument classes, e.g. EndoNeRF pulling) | none.")
+
+
 def register(app: typer.Typer) -> None:
     """Add ``demo`` and ``run`` to the root ``app``."""
 
@@ -105,9 +110,7 @@ def register(app: typer.Typer) -> None:
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
-        grasping: str = typer.Option("graspers", "--grasping", help="Which instruments hold the tissue their jaws "
-                                     "close on (the others push): graspers (by class) | all (data without "
-                                     "instrument classes, e.g. EndoNeRF pulling) | none."),
+        grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
     ) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
@@ -141,9 +144,7 @@ def register(app: typer.Typer) -> None:
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         recon_run: Optional[Path] = typer.Option(None, "--recon", help="Use this `endogsim reconstruct` run folder of "
                                                  "DATA instead of reconstructing into OUT/recon."),
-        grasping: str = typer.Option("graspers", "--grasping", help="Which instruments hold the tissue their jaws "
-                                     "close on (the others push): graspers (by class) | all (data without "
-                                     "instrument classes, e.g. EndoNeRF pulling) | none."),
+        grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
     ) -> None:
         """Calibrate the materials on the first frames of a video, predict the held-out rest with the tracked
         instrument motion, and compare with the filmed frames (EPE against the observed flow, masked PSNR)

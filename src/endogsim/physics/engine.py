@@ -178,7 +178,7 @@ class MPMEngine:
         x0_world = particles.x.detach().to(torch.float64).cpu().numpy()
         self._segments: dict[int, SegmentBuffers] = {}
 
-        pinned = self._pinned(scenario, x0_world)
+        pinned = scenario.pinned(x0_world).astype(np.int32)
         kinds, normals = self._node_conditions(scenario)
         bc_kind = wp.from_numpy(kinds, dtype=wp.int32, device=dev)
         bc_normal = wp.from_numpy(normals.astype(np.float32), dtype=wp.vec3, device=dev)
@@ -241,17 +241,6 @@ class MPMEngine:
         self.held_frames = [wp.array(held_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
 
     # -- set-up ----------------------------------------------------------------------------------------
-    def _mask(self, mask, what: str) -> np.ndarray:
-        """[P] int32 of a per-particle boolean mask, checked against the particle count."""
-        m = np.asarray(torch.as_tensor(mask).cpu().numpy(), dtype=bool).reshape(-1)
-        if m.shape[0] != self.P:
-            raise SimulationError(f"{what} has {m.shape[0]} entries for {self.P} particles")
-        return m.astype(np.int32)
-
-    def _pinned(self, scenario: Scenario, x0_world: np.ndarray) -> np.ndarray:
-        """[P] int32: particles of "fixed" anchors (:meth:`Scenario.pinned`)."""
-        return scenario.pinned(x0_world).astype(np.int32)
-
     def _node_conditions(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
         """Per-node boundary-condition kinds [n, n, n] and normals [n, n, n, 3] of the anchors' boxes and
         regions (unit-cube sim units share world directions). Later anchors win, sticky beats the others."""

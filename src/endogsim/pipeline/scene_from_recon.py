@@ -101,11 +101,11 @@ class RealScenario:
     grey_saturation: float = 0.3
     clearance: float = 0.25
     grasping: Literal["graspers", "all", "none"] = "graspers"
+    instrument_radius: tuple[float, float] = (0.0025, 0.00425)
 
     def __post_init__(self) -> None:
         if self.grasping not in ("graspers", "all", "none"):
             raise DataError(f"scenario.grasping {self.grasping!r} must be graspers|all|none")
-    instrument_radius: tuple[float, float] = (0.0025, 0.00425)
 
 
 @dataclass

@@ -130,13 +130,14 @@ def tissue_coverage(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
         sim = rasterize(m, opac, colors, view, covars=c, backend=backend)
         alpha = sim.alpha.cpu().numpy()
         ref_alpha = ref.features.cpu().numpy()  # [H, W, n objects]: each object's share of the rest render
+        seen = None if observed is None else observed_objects(problem.object_masks[t], object_ids, view.width,
+                                                             view.height)
         for k, oid in enumerate(ids):
             foot = _erode(ref_alpha[..., k] > 0.5, margin)
             if t == 0:
                 footprint_pixels[oid] = int(foot.sum())
             per_object[oid].append(float(alpha[foot].mean()) if foot.any() else 1.0)
             if observed is not None:
-                seen = observed_objects(problem.object_masks[t], object_ids, view.width, view.height)
                 observed[oid].append(float(seen[foot].mean()) if foot.any() else 1.0)
     return Coverage(frames, per_object, footprint_pixels, observed)
 
