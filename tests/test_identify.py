@@ -262,6 +262,16 @@ def test_recovers_E_within_10_percent_from_3x_off(problem, tmp_path):
     assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)
 
 
+def test_a_gradient_that_cannot_move_the_loss_by_tol_over_a_unit_step_is_stationary():
+    from endogsim.identify.optimize import stationary
+
+    E, nu = torch.zeros(2, requires_grad=True), torch.zeros(2, requires_grad=True)
+    (E * torch.tensor([1e-4, -5e-4]) + nu * torch.tensor([2e-4, 0.0])).sum().backward()
+    assert stationary([E, nu], loss=1.0, tol=1e-3)  # the largest, 5e-4 per decade, is below 1e-3 of the loss
+    assert not stationary([E, nu], loss=0.4, tol=1e-3)  # ... but not below 1e-3 of a smaller loss
+    assert stationary([E], loss=-1.0, tol=1e-3)  # the loss's size counts, not its sign
+
+
 def test_shared_scale_adam_is_adam_for_one_object_and_steps_weakly_observed_objects_less():
     from endogsim.identify.optimize import SharedScaleAdam
 

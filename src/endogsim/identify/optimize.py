@@ -11,7 +11,9 @@ the substeps of every rollout follow the CFL rule); nu in the sigmoid's (lo, hi)
 given explicitly beyond that bound is refused with a message giving it.
 
 Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
-not improved by a relative ``tol`` for ``patience`` iterations; a checkpoint is written atomically after
+not improved by a relative ``tol`` for ``patience`` iterations, or when for ``stationary_patience``
+iterations in a row its gradient could not change it by ``tol`` even over a whole unit step (a stationary,
+flat loss: :func:`stationary`); a checkpoint is written atomically after
 every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
 """
 
@@ -201,6 +203,13 @@ def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams 
         return identification_loss(rendered, obs, config.term_weights())
 
 
+def stationary(leaves: list[torch.Tensor], loss: float, tol: float) -> bool:
+    """True when no parameter's gradient (``leaves``' .grad, per decade of E or raw unit of nu) could change
+    the loss by a relative ``tol`` over a unit step: the loss is flat where the optimiser stands."""
+    largest = max(float(leaf.grad.abs().max()) for leaf in leaves if leaf.grad is not None and leaf.grad.numel())
+    return largest < tol * abs(loss)
+
+
 @deterministic()
 def identify(
     problem: SimScene,
@@ -261,7 +270,7 @@ def identify(
     opt = SharedScaleAdam(groups, lr=cfg.lr, betas=(0.9, 0.99))
     sig = _signature(problem, init_field, cfg)
 
-    start, history, best, seconds, stale = 0, [], None, 0.0, 0
+    start, history, best, seconds, stale, flat_run = 0, [], None, 0.0, 0, 0
     ckpt_path = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if ckpt_path is not None and ckpt_path.is_file() and resume:
         ck = torch.load(ckpt_path, weights_only=False)
@@ -273,6 +282,7 @@ def identify(
             params.nu_raw.copy_(ck["nu_raw"])
         opt.load_state_dict(ck["optimizer"])
         start, history, best, seconds, stale = ck["iteration"], ck["history"], ck["best"], ck["seconds"], ck["stale"]
+        flat_run = ck.get("flat_run", 0)
 
     stopped = "iters" if cfg.iters > 0 else "no_iterations"
     if history and history[-1].get("converged"):
@@ -301,6 +311,7 @@ def identify(
                 raise IdentificationError(f"iteration {k}: the gradient of the loss with respect to {what} of "
                                           f"object(s) {bad} is NaN/inf although every loss term was finite: "
                                           "the backward pass through the renderer produced it")
+        flat = stationary(leaves, parts["total"], cfg.tol)
         gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
         E, nu = _values(params)
         rec = {"iteration": k, "loss": parts["total"], "terms": {n: v for n, v in parts.items() if n != "total"}, "lr": lr,
@@ -314,23 +325,29 @@ def identify(
             stale = 0 if improved else stale + 1
         else:
             stale += 1
+        flat_run = flat_run + 1 if flat else 0
         opt.step()
         project_into_search_box(params, problem, init_field, cfg)
         seconds += time.perf_counter() - t0
         rec["seconds"] = seconds
-        rec["converged"] = stale >= cfg.patience
+        rec["stationary"] = flat
+        rec["converged"] = stale >= cfg.patience or (cfg.stationary_patience > 0 and flat_run >= cfg.stationary_patience)
         history.append(rec)
         done_here += 1
         if ckpt_path is not None:
             save_torch_atomic({"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
                                 "log10_E": params.log10_E.detach().clone(), "nu_raw": params.nu_raw.detach().clone(),
                                 "optimizer": opt.state_dict(), "history": history, "best": best,
-                                "seconds": seconds, "stale": stale}, ckpt_path)
+                                "seconds": seconds, "stale": stale, "flat_run": flat_run}, ckpt_path)
         if progress is not None:
             progress(k + 1, cfg.iters, rec)
         if rec["converged"]:
             stopped = "converged"
             break
+    if stopped == "converged" and history[-1].get("stationary"):  # also when a resumed run finds it stopped
+        notes.append(f"stopped at iteration {history[-1]['iteration']}: for {cfg.stationary_patience} iterations in "
+                     f"a row no parameter's gradient could change the loss by {cfg.tol:g} of itself over a unit "
+                     "step (a flat, stationary loss)")
 
     intervals: list[ParameterInterval] = []
     if best is None:  # optimisation off: the initial materials are the answer
