@@ -41,9 +41,20 @@ def test_demo_rejects_bad_options(tmp_path):
 
 @pytest.fixture(scope="module")
 def seed0_twice(tmp_path_factory):
-    """Two reduced demos with seed 0, each in its own folder."""
+    """Two reduced demos with seed 0, each in its own folder, from a process with 1 and with 2 torch threads
+    (the demo runs on its own ``threads``, 1, and puts the process's setting back)."""
+    import torch
+
     root = tmp_path_factory.mktemp("demo")
-    return [(root / f"run{k}", run_demo(root / f"run{k}", DemoConfig(**REDUCED))) for k in range(2)]
+    before, runs = torch.get_num_threads(), []
+    try:
+        for k in range(2):
+            torch.set_num_threads(k + 1)
+            runs.append((root / f"run{k}", run_demo(root / f"run{k}", DemoConfig(**REDUCED))))
+            assert torch.get_num_threads() == k + 1
+    finally:
+        torch.set_num_threads(before)
+    return runs
 
 
 def _identify_record(out) -> tuple:
@@ -55,9 +66,9 @@ def _identify_record(out) -> tuple:
     return mats, hist, m["identifiable"], m["intervals"], m["re_mean"], m["epe"]
 
 
-def test_the_same_seed_gives_the_same_materials(seed0_twice):
+def test_the_same_seed_gives_the_same_materials_whatever_the_processs_thread_count(seed0_twice):
     (a, sa), (b, sb) = seed0_twice
-    assert sa["seed"] == sb["seed"] == 0
+    assert sa["seed"] == sb["seed"] == 0 and sa["threads"] == sb["threads"] == 1
     assert sa["materials"] == sb["materials"] and sa["materials"][0]["E_identified"] > 0
     assert sa["iterations"] == sb["iterations"] == {"reconstruct": 12, "identify": 1}
     assert sa["stopped_by_budget"] == sb["stopped_by_budget"] == {"reconstruct": False, "identify": False}

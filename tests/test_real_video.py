@@ -218,6 +218,11 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     assert set(res["baselines"]) == {"prior", "zero_motion", "reconstruction"}
     for v in [res["prediction"], *res["baselines"].values()]:
         assert set(v) == {"epe", "psnr_masked"} and all(np.isfinite(x) for x in v.values())
+    for k in ("prior", "zero_motion"):  # whether the prediction wins, tested against the frame-to-frame noise
+        c = res["comparison"][k]
+        assert c["epe"]["frames"] == 2 and c["mse"]["frames"] == 2 and res["beats"][k] in (True, False)
+        assert res["beats"][k] == all(c[w]["z"] < -c[w]["significant_z"] and c[w]["relative"] <= -1e-3
+                                      for w in ("epe", "mse"))
     assert json.loads((run / "validate" / "validate.json").read_text())["train_frames"] == 4
     html = (run / "report.html").read_text()
     assert "Held-out validation" in html and "Identifiability" in html and "Tissue coverage" in html
@@ -232,6 +237,27 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     plain = heldout_scores(r.rgb[1:].numpy(), r.flow.numpy(), obs.frames[[4, 5]].numpy(), obs.flow[[3, 4]].numpy(),
                            obs.valid_rgb[[4, 5]].numpy(), obs.valid_flow[[3, 4]].numpy())
     assert plain == pytest.approx(res["baselines"]["prior"], rel=1e-6)
+
+
+def test_a_prediction_beats_a_baseline_only_beyond_the_frame_to_frame_noise():
+    from endogsim.pipeline.validate import compare_to
+
+    rng = np.random.default_rng(0)
+    base = (0.4 + 0.1 * rng.random(20), 0.01 + 0.002 * rng.random(20))  # per-pair EPE, per-frame MSE
+    same = compare_to(base, base)
+    assert not same["beats"] and same["epe"]["z"] == 0.0 and same["epe"]["difference"] == 0.0
+    # lower by 1e-7 px on average but noisy frame to frame: a tie (the old test called it a win)
+    wobble = 1e-5 * (-1.0) ** np.arange(20)
+    tie = compare_to((base[0] - 1e-7 + wobble, base[1] - 1e-9 + 1e-4 * wobble), base)
+    assert tie["epe"]["difference"] == pytest.approx(-1e-7, abs=1e-12) and not tie["beats"]
+    # 9e-8 px lower on every frame: significant frame after frame (renders that differ in the 7th digit
+    # differ consistently), but no win: it is not 0.1% of the error (pulling's prediction vs zero motion)
+    consistent = compare_to((base[0] - 9e-8, base[1] - 1e-8), base)
+    assert consistent["epe"]["z"] < -consistent["epe"]["significant_z"] and not consistent["beats"]
+    better = compare_to((base[0] * 0.9, base[1] * 0.9), base)  # 10% lower on every frame
+    assert better["beats"] and better["epe"]["z"] < -better["epe"]["significant_z"]
+    worse_psnr = compare_to((base[0] * 0.9, base[1] * 1.1), base)  # better flow, worse images: no win
+    assert not worse_psnr["beats"]
 
 
 def test_no_tissue_lies_inside_a_collider_at_frame_0(validated):

@@ -43,6 +43,9 @@ def register(app: typer.Typer) -> None:
         scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the synthesized scene, the reconstruction and the "
                                  "identification (same seed and thread count: same results, at any speed)."),
+        threads: int = typer.Option(1, "--threads", help="Torch threads for the demo. 1: the same numbers on every "
+                                    "machine; more: faster, but CPU sums run in another order and the answer can "
+                                    "differ."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         preview: bool = typer.Option(False, "--preview", help="Only render the procedural scene under a moving "
@@ -70,7 +73,9 @@ def register(app: typer.Typer) -> None:
 
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
-        cfg = DemoConfig(scene=scene, seed=seed)
+        if threads < 1:
+            raise typer.BadParameter("--threads must be >= 1")
+        cfg = DemoConfig(scene=scene, seed=seed, threads=threads)
         if recon_iters is not None:
             cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:
