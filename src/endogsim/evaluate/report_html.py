@@ -146,9 +146,13 @@ VALIDATION_COLUMNS = ["method", "EPE (px)", "masked PSNR (dB)",
                       "beaten by the prediction? (paired z and change: EPE, MSE)"]
 
 
-def validation_rows(v: dict) -> list[list]:
-    """Rows (:data:`VALIDATION_COLUMNS`) of a validate.json: the prediction, then each baseline with whether
-    the prediction beats it beyond the frame-to-frame noise (a validate.json from before that test: "-")."""
+def validation_rows(v: dict) -> list[list[str]]:
+    """Rows (:data:`VALIDATION_COLUMNS`, as text) of a validate.json: the prediction, then each baseline with
+    whether the prediction beats it beyond the frame-to-frame noise (a validate.json from before that test:
+    "-"). EPE to 1e-6 px and PSNR to 1e-4 dB, so that a tie in the 5th digit reads as one."""
+    def fixed(x: float, decimals: int) -> str:
+        return f"{x:.{decimals}f}" if math.isfinite(x) else str(x)
+
     def verdict(name: str) -> str:
         c = v.get("comparison", {}).get(name)
         if c is None:
@@ -157,8 +161,8 @@ def validation_rows(v: dict) -> list[list]:
         return (f"{'yes' if v['beats'][name] else 'no'} (z {e['z']:+.2f}, {m['z']:+.2f}; "
                 f"{100 * e.get('relative', 0.0):+.3g}%, {100 * m.get('relative', 0.0):+.3g}%)")
 
-    rows = [["prediction (calibrated)", v["prediction"]["epe"], v["prediction"]["psnr_masked"], ""]]
-    return rows + [[name, b["epe"], b["psnr_masked"], verdict(name)] for name, b in v["baselines"].items()]
+    rows = [["prediction (calibrated)", v["prediction"], ""]] + [[name, b, verdict(name)] for name, b in v["baselines"].items()]
+    return [[name, fixed(sc["epe"], 6), fixed(sc["psnr_masked"], 4), said] for name, sc, said in rows]
 
 
 def _validation_section(folder: Path, rel) -> list[str]:

@@ -278,8 +278,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
 
 
 def validation_table(result: dict) -> tuple[list[str], list[list]]:
-    """(columns, rows) of a validate.json for printing."""
+    """(columns, rows) of a validate.json for printing (:func:`endogsim.evaluate.report_html.validation_rows`)."""
     from endogsim.evaluate.report_html import VALIDATION_COLUMNS, validation_rows
 
-    return VALIDATION_COLUMNS, [[r[0]] + [round(x, 4) if math.isfinite(x) else x for x in r[1:3]] + r[3:]
-                                for r in validation_rows(result)]
+    return VALIDATION_COLUMNS, validation_rows(result)
