@@ -73,9 +73,7 @@ def register(app: typer.Typer) -> None:
 
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
-        if threads < 1:
-            raise typer.BadParameter("--threads must be >= 1")
-        cfg = DemoConfig(scene=scene, seed=seed, threads=threads)
+        cfg = DemoConfig(scene=scene, seed=seed, threads=threads)  # checks threads >= 1
         if recon_iters is not None:
             cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:

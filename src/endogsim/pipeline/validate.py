@@ -99,17 +99,17 @@ def heldout_scores(rgb: np.ndarray, flow: np.ndarray, observed: np.ndarray, obse
 
 def heldout_per_frame(rgb: np.ndarray, flow: np.ndarray, observed: np.ndarray, observed_flow: np.ndarray,
                       tissue: np.ndarray, tissue_pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same errors as :func:`heldout_scores`, frame by frame: the tissue EPE of every held-out pair [K']
-    (px) and the tissue mean squared error of every held-out frame [K] (NaN where a frame has no tissue)."""
-    err = np.linalg.norm(np.asarray(flow, np.float64) - np.asarray(observed_flow, np.float64), axis=-1)
-    sq = ((np.clip(np.asarray(rgb, np.float64), 0, 1) - np.asarray(observed, np.float64)) ** 2).mean(-1)
+    """The same errors as :func:`heldout_scores`, frame by frame (the same metrics, one frame at a time): the
+    tissue EPE of every held-out pair [K'] (px) and the tissue mean squared error of every held-out frame [K]
+    (NaN where a frame has no tissue)."""
+    from endogsim.evaluate.flow_metrics import epe
+    from endogsim.evaluate.image_metrics import mse
 
-    def masked_means(v: np.ndarray, m: np.ndarray) -> np.ndarray:
-        m = np.asarray(m, bool) & np.isfinite(v)
-        n = m.reshape(len(v), -1).sum(1)
-        return np.where(n > 0, np.where(m, v, 0.0).reshape(len(v), -1).sum(1) / np.maximum(n, 1), np.nan)
-
-    return masked_means(err, tissue_pairs), masked_means(sq, tissue)
+    flow_err = np.array([epe(f, o, m) for f, o, m in zip(flow, observed_flow, tissue_pairs)])
+    pred, seen = torch.from_numpy(np.clip(rgb, 0, 1)), torch.from_numpy(observed)
+    image_err = np.array([float(mse(pred[k], seen[k], torch.from_numpy(m))) if m.any() else math.nan
+                          for k, m in enumerate(tissue)])
+    return flow_err, image_err
 
 
 #: The least relative improvement over a baseline's error that counts as a win (identification's ``tol``).
