@@ -21,6 +21,7 @@ from endogsim.identify.uncertainty import (
     significant_z,
     walk_slice,
 )
+from endogsim.errors import SimulationError
 from endogsim.materials.field import MaterialField, MaterialRecord
 
 THETA0 = 3.4  # the true value (think log10 E)
@@ -39,7 +40,7 @@ def _interval(eps: np.ndarray) -> tuple[float, list[float], bool, bool]:
     ref = loss(best)
     n = len(eps)
     sl = walk_slice(best, E_STEPS, (0.0, 7.0), lambda v: paired_z(loss(v), ref), critical_z(n), significant_z(n))
-    ok, _ = identifiability(sl, None, "+-1.0 decades", significant_z(n))
+    ok, _ = identifiability(sl, None, "the search box", significant_z(n))
     return best, sl.interval, all(sl.bounded), ok
 
 
@@ -82,18 +83,46 @@ def test_ninety_percent_intervals_cover_the_truth_ninety_percent_of_the_time(n):
 
 def test_a_loss_of_pure_noise_is_rarely_called_identifiable():
     """Per-frame losses that do not depend on theta, each evaluation with fresh noise (10 frames), against one
-    evaluation at the optimum. A side counts as significant when one of its 3 trials has z > significant_z
-    (5% each under this null): 2.0% for both sides were the six comparisons independent; sharing the
-    optimum's evaluation correlates them, and 4.8% of 2000 draws pass (binomial sd 0.005). The bound 0.07 is
-    4 sd above that; with the interval's critical z as the test instead, 23% would pass (a fixed 1.645: 7%)."""
+    evaluation at the optimum. A side counts as significant when one of its 4 trials (0.1, 0.3, 1 decade and
+    the search box's end) has z > significant_z (5% each under this null): 3.4% for both sides were the eight
+    comparisons independent; sharing the optimum's evaluation correlates them, and 6.0% of 2000 draws pass
+    (binomial sd 0.005; 4.8% with the three trials of a slice that stopped at 1 decade). The bound 0.08 is about
+    4 sd above that; with the interval's critical z as the test instead, far more would pass (23% with three
+    trials; a fixed 1.645: 7%)."""
     rng = np.random.default_rng(7)
     n, draws, identified = 10, 2000, 0
     for _ in range(draws):
         noise = lambda theta: {t: 0.5 + 0.01 * rng.normal() for t in range(n)}  # noqa: E731
         ref = noise(THETA0)
         sl = walk_slice(THETA0, E_STEPS, (0.0, 7.0), lambda v: paired_z(noise(v), ref), critical_z(n), significant_z(n))
-        identified += identifiability(sl, None, "+-1.0 decades", significant_z(n))[0]
-    assert identified / draws < 0.07
+        identified += identifiability(sl, None, "the search box", significant_z(n))[0]
+    assert identified / draws < 0.08
+
+
+def test_a_side_without_a_significant_rise_nearby_is_tested_at_the_search_box_end():
+    """A loss flat within 1 decade above the optimum but rising beyond (a tissue that stiffens out of the
+    video's reach only far away) is identifiable: the walk goes on to the box's end before it gives up. A trial
+    whose simulation fails ends its side, is recorded, and counts as no evidence."""
+    n, best = 10, 3.4
+    noise = np.random.default_rng(3).normal(0.0, 1.0, n)
+    ref = {t: 1.0 for t in range(n)}
+
+    def loss(v: float) -> dict[int, float]:  # rises steeply below, only beyond +1.5 decades above
+        rise = (best - v) * 10.0 if v < best else max(0.0, v - best - 1.5) * 10.0
+        return {t: 1.0 + rise * (1.0 + 0.1 * e) for t, e in enumerate(noise)}
+
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: paired_z(loss(v), ref), critical_z(n), significant_z(n))
+    assert [r[0] for r in sl.records] == pytest.approx([3.3, 3.4 + 0.1, 3.4 + 0.3, 4.4, 6.0])
+    assert sl.significant == (True, True) and identifiability(sl, None, "the search box", significant_z(n))[0]
+
+    def failing(v: float):
+        if v >= 6.0:
+            raise SimulationError("MPM diverged (NaN/inf) at frame 3: lower dt or E")
+        return paired_z(loss(v), ref)
+
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), failing, critical_z(n), significant_z(n))
+    assert sl.failures == [(6.0, "MPM diverged (NaN/inf) at frame 3: lower dt or E")]
+    assert sl.significant == (True, False) and not identifiability(sl, None, "the search box", significant_z(n))[0]
 
 
 def test_critical_z():

@@ -13,9 +13,10 @@ z > z_c; the interval is the connected set of values around theta* that are not 
 interpolated where z crosses z_c. A parameter is identifiable when on each side of theta* some trial value
 raises the loss significantly above its frame-to-frame noise, z > z_s (:func:`significant_z`): a one-sided
 test at 5% per side of "the loss does not depend on theta", under which z follows Student's t with n - 1
-degrees of freedom. Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade; nu by 0.02, 0.06) and stop
-at the first significant value or the search box. One whose first gradient was zero is not identifiable,
-whatever its slice.
+degrees of freedom. Slices go outward from theta* (log10 E by 0.1, 0.3, 1 decade, then to the search box's
+end; nu by 0.02, 0.06, then to the box's end) and stop at the first significant value: a parameter is
+declared not identifiable only after the loss stayed within its noise over the whole search box on a side.
+One whose first gradient was zero is not identifiable, whatever its slice.
 
 The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
 with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
@@ -26,7 +27,7 @@ per-frame noise this is exact (``tests/test_uncertainty.py`` measures 90% covera
 one-sided normal test of "theta is worse than theta*", gave 97-99.8% there (intervals about twice too
 wide). The identifiability test needs more, z_s = q = 2 z_c (twice the interval's half-width on a quadratic
 loss): with z_c alone a loss of pure noise, independent of theta, passes on both sides about 23% of the
-time, with z_s about 5% (``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make the
+time, with z_s about 6% (four trials per side; ``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make the
 interval too narrow: ``endogsim bench suite`` reports how often the true value falls inside (coverage).
 """
 
@@ -39,6 +40,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from endogsim.errors import EndoGSimError
 from endogsim.materials.field import MaterialParams
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "ParameterInterval", "Slice", "paired_z", "critical_z", "significant_z",
@@ -46,9 +48,10 @@ __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "ParameterInterval", "Slice", "paired
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
 LEVEL = 0.90
-#: Slice steps away from the optimum: log10 E (decades) and nu.
-E_STEPS = (0.1, 0.3, 1.0)
-NU_STEPS = (0.02, 0.06)
+#: Slice steps away from the optimum: log10 E (decades) and nu; ``math.inf`` is the search box's end, so a
+#: side with no significant rise nearby is tested once more at the farthest value identification could reach.
+E_STEPS = (0.1, 0.3, 1.0, math.inf)
+NU_STEPS = (0.02, 0.06, math.inf)
 
 
 @dataclass
@@ -61,8 +64,8 @@ class ParameterInterval:
         best: the identified value.
         interval: [lo, hi] 90% interval (Pa for E), clipped to the search box.
         search_box: [lo, hi] the values identification could reach.
-        identifiable: the loss rises significantly above its noise on both sides within the slice (and the
-            first gradient is not zero).
+        identifiable: the loss rises significantly above its noise on both sides within the search box (and
+            the first gradient is not zero).
         reason: one line saying why (or why not).
         slice: [[value, Delta L, SE, z], ...] the trial values and their comparison with the optimum.
         first_gradient: the loss gradient with respect to this parameter at the first iteration (None when
@@ -153,12 +156,15 @@ class Slice:
         bounded: (below, above): a trial value was excluded on that side (z > the interval's critical z).
         significant: (below, above): a trial value's loss rose significantly above the noise on that side.
         records: [[value, Delta L, SE, z], ...] in the order evaluated.
+        failures: [(value, message), ...] trial values whose simulation failed (it ends that side's walk:
+            a simulation that cannot run is no evidence either way).
     """
 
     interval: list[float]
     bounded: tuple[bool, bool]
     significant: tuple[bool, bool]
     records: list[list[float]]
+    failures: list[tuple[float, str]] = field(default_factory=list)
 
 
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
@@ -167,12 +173,13 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
     """Walk one parameter's slice outward from ``best``: its interval and what it shows on each side.
 
     On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
-    side stops at the first value whose z exceeds ``significance`` (or, without it, ``threshold``) or where
-    the box ends. The interval's end on a side is where z first crosses ``threshold``.
+    side stops at the first value whose z exceeds ``significance`` (or, without it, ``threshold``), where
+    the box ends, or at a trial whose simulation fails (:class:`~endogsim.errors.EndoGSimError`, kept in
+    ``failures``). The interval's end on a side is where z first crosses ``threshold``.
 
     Args:
         best: the optimum (slice coordinate, e.g. log10 E).
-        steps: distances from ``best``, increasing.
+        steps: distances from ``best``, increasing (``math.inf``: the box's end).
         box: the search box in the same coordinate.
         compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
         threshold: z above which a value is excluded from the interval (:func:`critical_z`).
@@ -181,19 +188,24 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
     stop = threshold if significance is None else max(threshold, significance)
     sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
     records: list[list[float]] = []
+    failures: list[tuple[float, str]] = []
     for side in (-1, 1):
         for step in steps:
             v = min(max(best + side * step, box[0]), box[1])
             if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
                 break  # the box ends here
-            delta, se, z = compare(v)
+            try:
+                delta, se, z = compare(v)
+            except EndoGSimError as e:
+                failures.append((v, str(e)))
+                break
             sides[side].append((v, z))
             records.append([v, delta, se, z])
             if z > stop:
                 break
     interval, b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
     sig = tuple(any(z > stop for _, z in sides[side]) for side in (-1, 1))
-    return Slice(interval, (b_lo, b_hi), sig, records)
+    return Slice(interval, (b_lo, b_hi), sig, records, failures)
 
 
 def identifiability(sl: Slice, first_gradient: float | None, span: str, significance: float) -> tuple[bool, str]:
@@ -202,7 +214,7 @@ def identifiability(sl: Slice, first_gradient: float | None, span: str, signific
     Args:
         sl: from :func:`walk_slice`.
         first_gradient: the loss gradient at the first iteration (exactly 0: the video does not constrain it).
-        span: how far the slice went, for the message (e.g. "+-1.0 decades").
+        span: how far the slice went, for the message (e.g. "the search box").
         significance: the z a trial needed on each side (:func:`significant_z`).
     """
     if first_gradient is not None and first_gradient == 0.0:
@@ -213,10 +225,10 @@ def identifiability(sl: Slice, first_gradient: float | None, span: str, signific
         return True, (f"the loss rises significantly above its frame-to-frame noise (z > {significance:.4g}) "
                       "on both sides")
     if not any(sl.bounded):
-        return False, f"the loss changes by less than its frame-to-frame noise over {span} (clipped to the search box)"
+        return False, f"the loss changes by less than its frame-to-frame noise over {span}"
     flat = [name for name, sig in zip(("below", "above"), sl.significant) if not sig]
     return False, (f"the loss does not rise significantly above its frame-to-frame noise (z > {significance:.4g}) "
-                   f"{' or '.join(flat)} the optimum within {span} (clipped to the search box)")
+                   f"{' or '.join(flat)} the optimum within {span}")
 
 
 def parameter_intervals(
@@ -259,8 +271,10 @@ def parameter_intervals(
             g0 = None
             if first_gradients is not None:
                 g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
-            ok, reason = identifiability(sl, g0, f"+-{steps[-1]}{' decades' if what == 'E' else ''}", significance)
+            ok, reason = identifiability(sl, g0, "the search box", significance)
             to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+            for v, message in sl.failures:
+                reason += f"; the simulation at {what} = {to_value(v):.4g} failed ({message}), which ended the slice there"
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
