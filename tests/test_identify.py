@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from endogsim.errors import DataError, SimulationError
+from endogsim.errors import DataError, MaterialError, SimulationError
 from endogsim.identify import IdentifyConfig, identify
 from endogsim.identify.optimize import project_into_search_box, stable_log10_E_max
 from endogsim.identify.report import write_outputs
@@ -260,6 +260,16 @@ def test_recovers_E_within_10_percent_from_3x_off(problem, tmp_path):
     res = identify(problem, field_from_truth(problem, 3.0), cfg, run_dir=tmp_path / "run")
     E_true = next(o.E for o in problem.spec.objects if not o.rigid)
     assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)
+
+
+def test_the_automatic_frame_stride_compares_at_least_ten_frames():
+    """Every second frame where that still leaves 10 to compare (the intervals' t-test), else every frame;
+    an explicit stride is kept."""
+    auto = IdentifyConfig()
+    assert [auto.stride(n) for n in (3, 10, 16, 19, 20, 42, 63)] == [1, 1, 1, 2, 2, 2, 2]
+    assert IdentifyConfig(frame_stride=3).stride(10) == 3 and IdentifyConfig(frame_stride=1).stride(63) == 1
+    with pytest.raises(MaterialError, match="frame_stride = 0"):
+        IdentifyConfig(frame_stride=0)
 
 
 def test_a_gradient_that_cannot_move_the_loss_by_tol_over_a_unit_step_is_stationary():

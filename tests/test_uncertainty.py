@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from endogsim.errors import SimulationError
 from endogsim.identify.optimize import NOT_IDENTIFIABLE, ONE_SIDED, identified_field
 from endogsim.identify.uncertainty import (
     E_STEPS,
@@ -21,7 +22,6 @@ from endogsim.identify.uncertainty import (
     significant_z,
     walk_slice,
 )
-from endogsim.errors import SimulationError
 from endogsim.materials.field import MaterialField, MaterialRecord
 
 THETA0 = 3.4  # the true value (think log10 E)

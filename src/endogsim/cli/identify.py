@@ -36,8 +36,10 @@ def register(app: typer.Typer) -> None:
         time_budget: Optional[float] = typer.Option(_DEFAULT.time_budget, "--time-budget",
                                                     help="Safety stop after this many seconds of optimisation (best "
                                                          "kept; the schedule follows --iters only)."),
-        frame_stride: int = typer.Option(_DEFAULT.frame_stride, "--frame-stride",
-                                         help="Compare every k-th frame (and its flow); the simulation runs through all."),
+        frame_stride: Optional[int] = typer.Option(None, "--frame-stride",
+                                                   help="Compare every k-th frame (and its flow); the simulation runs "
+                                                        "through all. Default: 2 where that compares at least 10 "
+                                                        "frames, else 1."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal, get_args
 
@@ -11,6 +12,9 @@ from endogsim.priors.flow import FlowConfig
 
 LossKind = Literal["joint_track", "joint", "render", "flow", "track"]
 LOSSES: tuple[str, ...] = get_args(LossKind)
+#: The automatic frame stride compares at least this many frames (the intervals' t-test then has 9 degrees of
+#: freedom or more): a 10-frame clip is compared at every frame, a 20-frame one at every second.
+MIN_COMPARED_FRAMES = 10
 
 
 @dataclass
@@ -74,8 +78,11 @@ class IdentifyConfig:
             DIS tuned for sub-pixel motion; "raft" needs a local weights file).
         frames: use only the first ``frames`` frames (None = all).
         frame_stride: compare every k-th frame (t = 0, k, 2k, ...: its image and its flow to t + 1); the
-            simulation still runs through every frame. Rendering dominates a CPU iteration, so the default
-            k = 2 halves its cost while the compared frames still span the whole clip (k = 1: the paper's sums).
+            simulation still runs through every frame. None (default): 2 where that still compares at least
+            :data:`MIN_COMPARED_FRAMES` frames, else 1 (:meth:`stride`). Rendering dominates a CPU iteration,
+            so k = 2 halves its cost while the compared frames still span the whole clip; but the intervals
+            measure the loss's noise from frame to frame, and with 5 frames (a 10-frame clip at k = 2) that
+            t-test has 4 degrees of freedom (k = 1: the paper's sums).
         seed: torch seed (the loop itself is deterministic).
         device: "cpu" or "cuda" for the simulator and renderer.
     """
@@ -105,7 +112,7 @@ class IdentifyConfig:
     render_scale: float = 0.5
     flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))
     frames: int | None = None
-    frame_stride: int = 2
+    frame_stride: int | None = None
     seed: int = 0
     device: str = "cpu"
 
@@ -129,8 +136,8 @@ class IdentifyConfig:
                                 f"{self.stationary_patience} >= 0")
         if self.time_budget is not None and not self.time_budget > 0:
             raise MaterialError(f"time_budget = {self.time_budget} s must be > 0 (or None)")
-        if self.frame_stride < 1:
-            raise MaterialError(f"frame_stride = {self.frame_stride} must be >= 1")
+        if self.frame_stride is not None and self.frame_stride < 1:
+            raise MaterialError(f"frame_stride = {self.frame_stride} must be >= 1 (or None: automatic)")
         if self.flow_weight < 0 or self.track_weight < 0:
             raise MaterialError(f"flow_weight = {self.flow_weight}, track_weight = {self.track_weight} must be >= 0")
         self.nu_bounds = (float(self.nu_bounds[0]), float(self.nu_bounds[1]))
@@ -143,6 +150,13 @@ class IdentifyConfig:
                 LOSS_TERMS.get(name)
                 if not w >= 0:
                     raise MaterialError(f"loss term {name!r} weight {w} must be >= 0")
+
+    def stride(self, num_frames: int) -> int:
+        """The frame stride of a clip of ``num_frames`` frames: ``frame_stride``, or when it is None 2 if that
+        still compares at least :data:`MIN_COMPARED_FRAMES` frames, else 1."""
+        if self.frame_stride is not None:
+            return self.frame_stride
+        return 2 if math.ceil(num_frames / 2) >= MIN_COMPARED_FRAMES else 1
 
     def term_weights(self) -> dict[str, float]:
         """{loss term: weight} of this run: ``loss_terms``, or the ``loss`` preset with ``flow_weight``."""
