@@ -199,7 +199,8 @@ def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams 
     """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects)."""
     with torch.set_grad_enabled(grad):
         pos, F = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
-        rendered = render_sequence(problem, pos, F, camera, frames=range(0, problem.num_frames, config.stride(problem.num_frames)))
+        frames = range(0, problem.num_frames, config.stride(problem.num_frames))
+        rendered = render_sequence(problem, pos, F, camera, frames=frames)
         return identification_loss(rendered, obs, config.term_weights())
 
 
