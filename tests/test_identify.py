@@ -226,6 +226,9 @@ def test_outputs_written(problem, run3, tmp_path):
         assert k in disk and math.isfinite(disk[k]), k
     assert disk["iterations"] == 3 and "tissue" in disk["re_objects"]
     assert disk["stopped"] == "iters" and disk["stopped_by_budget"] is False
+    assert disk["frame_stride"] == 2 and "5 of 10 frames compared (stride 2)" in (run_dir / "summary.txt").read_text()
+    auto = write_outputs(tmp_path / "auto", problem, res, IdentifyConfig(intervals=False), init_name="test", video=False)
+    assert auto["frame_stride"] == 1 and auto["config"]["frame_stride"] is None  # what ran, and what was asked
     ident = MaterialField.load(run_dir / "materials_identified.json")
     assert ident[1].E == pytest.approx(res.field[1].E)
     assert m["epe"] == disk["epe"]

@@ -159,6 +159,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     metrics: dict = {
         "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
+        "frame_stride": config.stride(problem.num_frames),  # the one used (config's None: automatic)
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
@@ -190,7 +191,9 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         write_video(comparison_frames(problem.frames, ev.rgb, ev.flow_error), run / "comparison.mp4", fps=10)
     lines = [f"EndoGSim identification of {problem.folder} ({problem.spec.name})",
              f"init {init_name}; loss {config.loss}; grad mode {config.grad_mode}; "
-             f"{'global material' if config.global_material else 'object-wise material field'}",
+             f"{'global material' if config.global_material else 'object-wise material field'}; "
+             f"{len(range(0, problem.num_frames, config.stride(problem.num_frames)))} of {problem.num_frames} frames "
+             f"compared (stride {config.stride(problem.num_frames)})",
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
              f"{result.seconds:.1f} s"]
     for r in result.field.records:
