@@ -70,11 +70,20 @@ def test_the_same_seed_gives_the_same_materials_whatever_the_processs_thread_cou
     (a, sa), (b, sb) = seed0_twice
     assert sa["seed"] == sb["seed"] == 0 and sa["threads"] == sb["threads"] == 1
     assert sa["materials"] == sb["materials"] and sa["materials"][0]["E_identified"] > 0
+    lo, hi = sa["materials"][0]["E_interval"]  # the summary carries each result's 90% interval and source
+    assert lo <= sa["materials"][0]["E_identified"] <= hi and sa["materials"][0]["source"]
     assert sa["iterations"] == sb["iterations"] == {"reconstruct": 12, "identify": 1}
     assert sa["stopped_by_budget"] == sb["stopped_by_budget"] == {"reconstruct": False, "identify": False}
     assert _identify_record(a) == _identify_record(b)
     assert sa["recon_psnr_masked"] == sb["recon_psnr_masked"]
     assert (a / "scene_truth" / "images").is_dir() and (a / "render.mp4").is_file()
+
+
+def test_the_demo_table_shows_each_result_with_its_interval():
+    from endogsim.cli.demo import _with_interval
+
+    assert _with_interval(2472.85, [1715.1, 3084.9], ".4g") == "2473 [1715, 3085]"
+    assert _with_interval(0.47, None, ".3f") == "0.470" and _with_interval(None, None, ".3f") == "-"
 
 
 def test_another_seed_gives_another_scene(seed0_twice, tmp_path):

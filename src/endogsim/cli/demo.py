@@ -28,6 +28,13 @@ def _fmt_optional(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
+def _with_interval(v, interval: list[float] | None, spec: str) -> str:
+    """``v`` and its 90% interval, e.g. "2473 [1715, 3085]" ("-" when ``v`` is None)."""
+    if interval is None:
+        return _fmt_optional(v, spec)
+    return f"{_fmt_optional(v, spec)} [{format(interval[0], spec)}, {format(interval[1], spec)}]"
+
+
 #: ``--grasping`` of ``run`` and ``validate`` (:attr:`endogsim.pipeline.scene_from_recon.RealScenario.grasping`).
 _GRASPING_HELP = ("Which instruments hold the tissue their jaws close on (the others push): graspers (by class) | "
                   "all (data without instrument classes, e.g. EndoNeRF pulling) | none.")
@@ -79,16 +86,18 @@ def register(app: typer.Typer) -> None:
         if identify_iters is not None:
             cfg.identify = replace(cfg.identify, iters=identify_iters)
         s = run_demo(out, cfg, on_stage=_stage_printer())
-        print_table("Recovered vs ground-truth materials", ["object", "E true (Pa)", "E prior (Pa)", "E identified (Pa)",
-                                                            "nu true", "nu prior", "nu identified"],
+        # "result", not "identified": a parameter the video does not determine keeps its prior (see "source")
+        print_table("Recovered vs ground-truth materials",
+                    ["object", "E true (Pa)", "E prior (Pa)", "E result [90% interval] (Pa)", "nu true", "nu prior",
+                     "nu result [90% interval]", "source"],
                     [(r["object"], f"{r['E_true']:.4g}", _fmt_optional(r["E_init"], ".4g"),
-                      _fmt_optional(r["E_identified"], ".4g"), f"{r['nu_true']:.3f}",
-                      _fmt_optional(r["nu_init"], ".3f"),
-                      _fmt_optional(r["nu_identified"], ".3f")) for r in s["materials"]])
+                      _with_interval(r["E_identified"], r.get("E_interval"), ".4g"), f"{r['nu_true']:.3f}",
+                      _fmt_optional(r["nu_init"], ".3f"), _with_interval(r["nu_identified"], r.get("nu_interval"), ".3f"),
+                      r.get("source") or "-") for r in s["materials"]])
         print_table("Scores", ["metric", "value"],
                     [("RE mean, prior init", _fmt_optional(s["re_mean_init"], ".3f")),
-                     ("RE mean, identified", _fmt_optional(s["re_mean"], ".3f")),
-                     ("EPE (px), identified", _fmt_optional(s["epe"], ".3f")),
+                     ("RE mean, result", _fmt_optional(s["re_mean"], ".3f")),
+                     ("EPE (px), result", _fmt_optional(s["epe"], ".3f")),
                      ("reconstruction PSNR, masked (dB)", _fmt_optional(s["recon_psnr_masked"], ".2f")),
                      ("seed", str(s["seed"])),
                      ("pipeline seconds (all stages after synthesis)", f"{s['pipeline_seconds']:.0f}"),
