@@ -252,6 +252,8 @@ def test_cli_identify_iters_zero(tiny, tmp_path):
     assert r.exit_code == 0, r.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["iterations"] == 0 and m["init"] == "prior"
+    # no optimisation ran: the table gives the value's source (the prior), never "identified"
+    assert m["materials"]["tissue"]["source"] == "prior" and "identified" not in r.output
     bad = CliRunner().invoke(app, ["identify", str(tmp_path / "missing"), "--out", str(out)])
     assert bad.exit_code == 2 and "scene.json" in bad.output
 

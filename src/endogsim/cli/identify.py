@@ -64,10 +64,11 @@ def register(app: typer.Typer) -> None:
 
             m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video)
             bar.update(task, completed=max(iters, 1))
-        rows = [(name, f"{v['E']:.4g}", f"{v['nu']:.3f}", "rigid (frozen)" if v["rigid"] else "identified")
+        # The source says whether the video moved the value (identified, a one-sided estimate) or not (prior).
+        rows = [(name, f"{v['E']:.4g}", f"{v['nu']:.3f}", "rigid (frozen)" if v["rigid"] else v.get("source", "-"))
                 for name, v in m["materials"].items()]
         print_table(f"Materials of {m['scene']} ({m['iterations']} iterations, {m['stopped']}, {m['seconds']:.0f} s)",
-                    ["object", "E (Pa)", "nu", ""], rows)
+                    ["object", "E (Pa)", "nu", "source"], rows)
         scores = [("EPE (px)", m["epe"]), ("PSNR (dB)", m["psnr"]), ("SSIM", m["ssim"])]
         if "re_mean" in m:
             scores = [("RE E", m["re_E"]), ("RE nu", m["re_nu"]), ("RE G", m["re_G"]), ("RE K", m["re_K"]),

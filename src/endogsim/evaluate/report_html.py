@@ -278,8 +278,9 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                 irows.append([obj, par, f"{v['best']:.4g}{unit}", f"[{lo:.4g}, {hi:.4g}]{unit}",
                               "yes" if v["identifiable"] else "NO", v["reason"]])
         parts.append("<h2>Identifiability</h2>" + _table(
-            ["object", "parameter", "identified", "90% interval", "identifiable", "evidence"], irows, left=6))
-        parts.append('<p class="note">A parameter the video does not determine (its loss changes by less than the '
+            ["object", "parameter", "optimum", "90% interval", "identifiable", "evidence"], irows, left=6))
+        parts.append('<p class="note">The optimum is where the loss was least; the value kept is in the material '
+                     "table. A parameter the video does not determine (its loss changes by less than the "
                      "loss's own frame-to-frame noise across the search box, or its gradient was zero) keeps its "
                      'initial value, labelled "prior (not identifiable from this video)".</p>')
     cov = metrics.get("coverage")
