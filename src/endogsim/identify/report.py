@@ -156,10 +156,11 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
             obs_flow = d["flow"]
     ev = evaluate_field(problem, result.field, obs_flow)
     re = material_errors(problem, result.field)
+    stride = config.stride(problem.num_frames)
     metrics: dict = {
         "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
-        "frame_stride": config.stride(problem.num_frames),  # the one used (config's None: automatic)
+        "frame_stride": stride,  # the one used (the config's None: automatic)
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
@@ -192,8 +193,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     lines = [f"EndoGSim identification of {problem.folder} ({problem.spec.name})",
              f"init {init_name}; loss {config.loss}; grad mode {config.grad_mode}; "
              f"{'global material' if config.global_material else 'object-wise material field'}; "
-             f"{len(range(0, problem.num_frames, config.stride(problem.num_frames)))} of {problem.num_frames} frames "
-             f"compared (stride {config.stride(problem.num_frames)})",
+             f"{len(range(0, problem.num_frames, stride))} of {problem.num_frames} frames compared (stride {stride})",
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
              f"{result.seconds:.1f} s"]
     for r in result.field.records:
