@@ -17,7 +17,6 @@ Outputs in OUT: ``render.mp4`` and ``frames/`` (the observed video, slowed to at
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -134,13 +133,12 @@ def _run_demo(out: str | Path, cfg: DemoConfig, on_stage: Callable[[str, str], N
                          truth=truth_dir, on_stage=on_stage)
     ident = state["stages"]["identify"]
     init_field = MaterialField.load(out / "run" / "identify" / "materials_init.json")
-    intervals = json.loads((out / "run" / "identify" / "metrics.json").read_text()).get("intervals", {})
     rows = []
     for o in truth.objects:
         if o.rigid:
             continue
         got = ident.get("materials", {}).get(o.name, {})
-        iv = intervals.get(o.name, {})
+        iv = ident.get("intervals", {}).get(o.name, {})
         rows.append({"object": o.name, "E_true": o.E, "E_init": init_field[o.id].E, "E_identified": got.get("E"),
                      "nu_true": o.nu, "nu_init": init_field[o.id].nu, "nu_identified": got.get("nu"),
                      "E_interval": iv.get("E"), "nu_interval": iv.get("nu"), "source": got.get("source")})
