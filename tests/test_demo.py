@@ -80,10 +80,10 @@ def test_the_same_seed_gives_the_same_materials_whatever_the_processs_thread_cou
 
 
 def test_the_demo_table_shows_each_result_with_its_interval():
-    from endogsim.cli.demo import _with_interval
+    from endogsim.cli.common import with_interval
 
-    assert _with_interval(2472.85, [1715.1, 3084.9], ".4g") == "2473 [1715, 3085]"
-    assert _with_interval(0.47, None, ".3f") == "0.470" and _with_interval(None, None, ".3f") == "-"
+    assert with_interval(2472.85, [1715.1, 3084.9], ".4g") == "2473 [1715, 3085]"
+    assert with_interval(0.47, None, ".3f") == "0.470" and with_interval(None, None, ".3f") == "-"
 
 
 def test_another_seed_gives_another_scene(seed0_twice, tmp_path):

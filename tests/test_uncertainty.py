@@ -14,13 +14,17 @@ from endogsim.errors import SimulationError
 from endogsim.identify.optimize import NOT_IDENTIFIABLE, ONE_SIDED, identified_field
 from endogsim.identify.uncertainty import (
     E_STEPS,
+    GCI_SAFETY,
     LEVEL,
+    NU_STEPS,
     critical_z,
+    discretisation_error,
     identifiability,
     paired_z,
     parameter_intervals,
     significant_z,
     walk_slice,
+    widen,
 )
 from endogsim.materials.field import MaterialField, MaterialRecord
 
@@ -205,7 +209,89 @@ def test_a_tool_that_never_touches_the_tissue_determines_nothing(tmp_path):
         # the tissue never moves: the first gradient is exactly zero and every trial's loss equals the optimum's
         assert "exactly zero" in tissue[what]["reason"] and tissue[what]["evidence"]["first_gradient"] == 0.0
         assert tissue[what]["evidence"]["slice"] and all(p["z"] == 0.0 for p in tissue[what]["evidence"]["slice"])
+        # nor on the coarser grid of the discretisation-error estimate: its optimum stays, nothing widens
+        disc = tissue[what]["discretisation"]
+        assert disc["shift"] == 0.0 and disc["half_width"] == 0.0 and disc["ratio"] > 1
+        assert tissue[what]["statistical_interval"] == pytest.approx(tissue[what]["interval"])
     assert m["materials"]["tissue"]["source"] == NOT_IDENTIFIABLE
     init = json.loads((tmp_path / "run" / "materials_init.json").read_text())
     rec = next(r for r in init["objects"] if r["name"] == "tissue")
     assert m["materials"]["tissue"]["E"] == pytest.approx(rec["E"]) and m["materials"]["tissue"]["nu"] == rec["nu"]
+
+
+def test_the_discretisation_error_is_the_grid_convergence_index_of_the_coarse_optimum():
+    """A coarse loss whose optimum lies 0.25 decades above the fine one's: the walk finds it (the parabola through
+    the least trial and its neighbours is exact on a quadratic), and the error bar is Roache's GCI."""
+    calls = []
+
+    def coarse(v: float) -> float:
+        calls.append(v)
+        return (v - 3.65) ** 2 + 1.0
+
+    err = discretisation_error(3.4, E_STEPS, (1.7, 6.0), coarse, ratio=38 / 27)
+    assert err.coarse_best == pytest.approx(3.65) and err.shift == pytest.approx(0.25)
+    assert err.half_width == pytest.approx(GCI_SAFETY * 0.25 / (38 / 27 - 1))
+    assert not err.lower_bound
+    # down: one step (the loss rises at once); up: 3.5, 3.7 lower than the optimum's, 4.4 higher: stop
+    assert calls == pytest.approx([3.4, 3.3, 3.5, 3.7, 4.4])
+    assert [v for v, _ in err.profile] == pytest.approx(calls)
+    # the same optimum at both discretisations: no error bar
+    err = discretisation_error(3.65, E_STEPS, (1.7, 6.0), coarse, ratio=1.5)
+    assert err.shift == pytest.approx(0.0, abs=1e-12) and err.half_width == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_flat_coarse_loss_moves_nothing_and_a_monotone_one_reaches_the_box_end():
+    flat = discretisation_error(0.45, NU_STEPS, (0.0, 0.49), lambda v: 0.3, ratio=1.4)
+    assert flat.coarse_best == 0.45 and flat.half_width == 0.0 and len(flat.profile) == 3  # one step each side
+    falling = discretisation_error(3.4, E_STEPS, (1.7, 6.0), lambda v: -v, ratio=1.4)
+    assert falling.coarse_best == 6.0 and falling.shift == pytest.approx(2.6) and not falling.lower_bound
+
+    def fails_beyond(v: float) -> float:  # a simulation that cannot run above 4.0: the optimum is a lower bound
+        if v > 4.0:
+            raise SimulationError("diverged")
+        return -v
+
+    short = discretisation_error(3.4, E_STEPS, (1.7, 6.0), fails_beyond, ratio=1.4)
+    assert short.coarse_best == pytest.approx(3.7) and short.lower_bound
+
+
+def test_the_discretisation_error_widens_each_side_in_quadrature_within_the_search_box():
+    assert widen([3.3, 3.6], 3.4, 0.0, (1.7, 6.0)) == pytest.approx([3.3, 3.6])
+    assert widen([3.3, 3.6], 3.4, 0.3, (1.7, 6.0)) == pytest.approx([3.4 - math.hypot(0.1, 0.3), 3.4 + math.hypot(0.2, 0.3)])
+    assert widen([1.7, 3.6], 3.4, 3.0, (1.7, 6.0)) == pytest.approx([1.7, 6.0])
+
+
+def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_statistical_one():
+    """Through the code path identification uses: the coarse loss's optimum 0.3 decades stiffer widens E's
+    interval; whether the prior is kept is decided by the statistical interval alone."""
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E += 0.5  # the optimum: log10(3000) + 0.5 = 3.977
+    best = float(params.log10_E.detach()[0])
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 1e-3, 12)
+
+    def per_frame(trial, centre: float) -> dict[int, float]:
+        e = float(trial.log10_E[0]) - centre
+        n = float(trial.nu()[0]) - float(params.nu()[0])
+        return {t: 0.2 + (1.0 + noise[t]) * (e ** 2 + n ** 2) for t in range(12)}
+
+    ivs = parameter_intervals(params, {1: "liver"}, lambda trial: per_frame(trial, best), lambda trial: ([1.7], [6.0]),
+                              True, coarse_evaluate=lambda trial: per_frame(trial, best + 0.3), coarse_ratio=1.4)
+    E = ivs[0]
+    assert E.identifiable and E.statistical_interval is not None and E.discretisation is not None
+    assert E.discretisation["shift"] == pytest.approx(0.3, abs=1e-6)
+    assert E.discretisation["coarse_best"] == pytest.approx(10 ** (best + 0.3), rel=1e-5)
+    u = GCI_SAFETY * 0.3 / 0.4
+    lo, hi = (math.log10(v) for v in E.statistical_interval)
+    assert [math.log10(v) for v in E.interval] == pytest.approx([best - math.hypot(best - lo, u),
+                                                                 best + math.hypot(hi - best, u)], abs=1e-9)
+    assert E.interval[0] < 3000.0 < E.statistical_interval[0]  # the prior: inside the total, outside the statistical
+    assert ivs[1].discretisation["shift"] == pytest.approx(0.0, abs=1e-6)  # nu's optimum does not move
+    ident = identified_field(init, params, ivs)
+    assert ident[1].E == pytest.approx(10 ** best) and ident[1].source == "identified"
+    E.identifiable = False  # one-sided: the statistical interval excludes the prior, so the estimate stays
+    assert identified_field(init, params, ivs)[1].E == pytest.approx(10 ** best)

@@ -111,8 +111,10 @@ def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict
         truth: {object name: (E Pa, nu)} of the ground truth.
     Returns:
         {name: {"E", "nu" (identified; Pa), "source", "E_true", "nu_true", "e_rel_error" (|E/E_true - 1|),
-        "E_interval" ([lo, hi] Pa), "nu_interval", "E_identifiable", "nu_identifiable"}}; None where the run
-        did not measure it (no truth, intervals off or no iteration run).
+        "E_interval" ([lo, hi] Pa), "nu_interval", "E_interval_statistical", "nu_interval_statistical" (the
+        frame-to-frame noise alone, before the discretisation error widened them), "E_identifiable",
+        "nu_identifiable"}}; None where the run did not measure it (no truth, intervals off or no iteration
+        run, no discretisation error measured).
     """
     out = {}
     for name, v in metrics["materials"].items():
@@ -124,6 +126,8 @@ def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict
         out[name] = {"E": v["E"], "nu": v["nu"], "source": v.get("source"), "E_true": E_true, "nu_true": nu_true,
                      "e_rel_error": metrics.get("re_objects", {}).get(name, {}).get("e_rel_error"),
                      "E_interval": iv.get("E"), "nu_interval": iv.get("nu"),
+                     "E_interval_statistical": ok.get("E", {}).get("statistical_interval"),
+                     "nu_interval_statistical": ok.get("nu", {}).get("statistical_interval"),
                      "E_identifiable": ok.get("E", {}).get("identifiable"),
                      "nu_identifiable": ok.get("nu", {}).get("identifiable")}
     return out
@@ -135,15 +139,18 @@ def interval_summary(objects: list[dict]) -> dict:
     Returns:
         {"objects", "e_rel_error_median", "coverage_E", "coverage_nu", "coverage" (E and nu intervals
         pooled), "n_E", "n_nu" (intervals measured with a truth to check), "mean_width_E_decades",
-        "mean_width_nu", "identifiable_E", "identifiable_nu" (counts)}; NaN where nothing was measured.
+        "mean_width_nu", "identifiable_E", "identifiable_nu" (counts), "coverage_statistical_E",
+        "coverage_statistical_nu", "coverage_statistical" (the same for the intervals of the frame-to-frame
+        noise alone, where the discretisation error was measured)}; NaN where nothing was measured.
     """
     import statistics
 
-    def inside(o: dict, what: str) -> bool | None:
-        iv, true = o[f"{what}_interval"], o[f"{what}_true"]
+    def inside(o: dict, what: str, kind: str = "") -> bool | None:
+        iv, true = o.get(f"{what}_interval{kind}"), o[f"{what}_true"]
         return None if iv is None or true is None else bool(iv[0] <= true <= iv[1])
 
     hits = {w: [h for h in (inside(o, w) for o in objects) if h is not None] for w in ("E", "nu")}
+    stat = {w: [h for h in (inside(o, w, "_statistical") for o in objects) if h is not None] for w in ("E", "nu")}
     frac = lambda xs: sum(xs) / len(xs) if xs else math.nan  # noqa: E731
     errs = [o["e_rel_error"] for o in objects if o["e_rel_error"] is not None]
     return {
@@ -157,6 +164,8 @@ def interval_summary(objects: list[dict]) -> dict:
                                 for o in objects if o["nu_interval"] is not None]),
         "identifiable_E": sum(bool(o["E_identifiable"]) for o in objects),
         "identifiable_nu": sum(bool(o["nu_identifiable"]) for o in objects),
+        "coverage_statistical_E": frac(stat["E"]), "coverage_statistical_nu": frac(stat["nu"]),
+        "coverage_statistical": frac(stat["E"] + stat["nu"]),
     }
 
 
@@ -301,6 +310,9 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
     cover = (f"true value inside its 90% interval: E {summary['coverage_E']:.2f} of {summary['n_E']}, nu "
              f"{summary['coverage_nu']:.2f} of {summary['n_nu']}, pooled {summary['coverage']:.2f} (nominal 0.90); "
              f"mean width: E {summary['mean_width_E_decades']:.3g} decades, nu {summary['mean_width_nu']:.3g}")
+    if not math.isnan(summary["coverage_statistical"]):
+        cover += (f"; with the frame-to-frame noise alone (no discretisation error) E {summary['coverage_statistical_E']:.2f}, "
+                  f"nu {summary['coverage_statistical_nu']:.2f}, pooled {summary['coverage_statistical']:.2f}")
     rows3 = []
     for init, on in RUNS:
         key = f"{init}_{'on' if on else 'off'}"

@@ -94,6 +94,18 @@ def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]
     console.print(table)
 
 
+def fmt_optional(v: Any, spec: str) -> str:
+    """``v`` formatted with ``spec``, "-" when it is None."""
+    return "-" if v is None else format(v, spec)
+
+
+def with_interval(v: Any, interval: Sequence[float] | None, spec: str) -> str:
+    """``v`` and its 90% interval, e.g. "2473 [1715, 3085]" ("-" when ``v`` is None)."""
+    if interval is None:
+        return fmt_optional(v, spec)
+    return f"{fmt_optional(v, spec)} [{format(interval[0], spec)}, {format(interval[1], spec)}]"
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"

@@ -24,17 +24,6 @@ def _stage_printer():
     return on_stage
 
 
-def _fmt_optional(v, spec: str) -> str:
-    return "-" if v is None else format(v, spec)
-
-
-def _with_interval(v, interval: list[float] | None, spec: str) -> str:
-    """``v`` and its 90% interval, e.g. "2473 [1715, 3085]" ("-" when ``v`` is None)."""
-    if interval is None:
-        return _fmt_optional(v, spec)
-    return f"{_fmt_optional(v, spec)} [{format(interval[0], spec)}, {format(interval[1], spec)}]"
-
-
 #: ``--grasping`` of ``run`` and ``validate`` (:attr:`endogsim.pipeline.scene_from_recon.RealScenario.grasping`).
 _GRASPING_HELP = ("Which instruments hold the tissue their jaws close on (the others push): graspers (by class) | "
                   "all (data without instrument classes, e.g. EndoNeRF pulling) | none.")
@@ -62,7 +51,7 @@ def register(app: typer.Typer) -> None:
         """The whole pipeline on a built-in procedural scene: synthesise a video with known materials, reconstruct
         it from the frames alone, initialise materials from the prior, identify them, simulate a new
         interaction, write OUT/run/report.html, and print recovered vs ground-truth materials."""
-        from endogsim.cli.common import console, print_table, progress
+        from endogsim.cli.common import console, fmt_optional, print_table, progress, with_interval
 
         if preview:
             from endogsim.pipeline.preview import PreviewConfig, render_preview
@@ -90,15 +79,15 @@ def register(app: typer.Typer) -> None:
         print_table("Recovered vs ground-truth materials",
                     ["object", "E true (Pa)", "E prior (Pa)", "E result [90% interval] (Pa)", "nu true", "nu prior",
                      "nu result [90% interval]", "source"],
-                    [(r["object"], f"{r['E_true']:.4g}", _fmt_optional(r["E_init"], ".4g"),
-                      _with_interval(r["E_identified"], r.get("E_interval"), ".4g"), f"{r['nu_true']:.3f}",
-                      _fmt_optional(r["nu_init"], ".3f"), _with_interval(r["nu_identified"], r.get("nu_interval"), ".3f"),
+                    [(r["object"], f"{r['E_true']:.4g}", fmt_optional(r["E_init"], ".4g"),
+                      with_interval(r["E_identified"], r.get("E_interval"), ".4g"), f"{r['nu_true']:.3f}",
+                      fmt_optional(r["nu_init"], ".3f"), with_interval(r["nu_identified"], r.get("nu_interval"), ".3f"),
                       r.get("source") or "-") for r in s["materials"]])
         print_table("Scores", ["metric", "value"],
-                    [("RE mean, prior init", _fmt_optional(s["re_mean_init"], ".3f")),
-                     ("RE mean, result", _fmt_optional(s["re_mean"], ".3f")),
-                     ("EPE (px), result", _fmt_optional(s["epe"], ".3f")),
-                     ("reconstruction PSNR, masked (dB)", _fmt_optional(s["recon_psnr_masked"], ".2f")),
+                    [("RE mean, prior init", fmt_optional(s["re_mean_init"], ".3f")),
+                     ("RE mean, result", fmt_optional(s["re_mean"], ".3f")),
+                     ("EPE (px), result", fmt_optional(s["epe"], ".3f")),
+                     ("reconstruction PSNR, masked (dB)", fmt_optional(s["recon_psnr_masked"], ".2f")),
                      ("seed", str(s["seed"])),
                      ("pipeline seconds (all stages after synthesis)", f"{s['pipeline_seconds']:.0f}"),
                      ("seconds of this invocation", f"{s['seconds']:.0f}")])

@@ -40,6 +40,10 @@ def register(app: typer.Typer) -> None:
                                                    help="Compare every k-th frame (and its flow); the simulation runs "
                                                         "through all. Default: 2 where that compares at least 10 "
                                                         "frames, else 1."),
+        coarse_factor: float = typer.Option(_DEFAULT.coarse_factor, "--coarse-factor",
+                                            help="The discretisation error in each 90% interval: the optimum found "
+                                                 "again on a grid this fraction as fine (0: not measured, the "
+                                                 "interval holds the video's noise alone)."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
@@ -48,12 +52,13 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Refine E and nu of the deformable objects so the simulated, rendered scene matches the video
         (appearance and optical flow). Writes identified materials, metrics.json, plots, a video, a summary."""
-        from endogsim.cli.common import console, print_table, progress
+        from endogsim.cli.common import console, print_table, progress, with_interval
         from endogsim.identify import run_identify
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
-                             flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget)
+                             flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget,
+                             coarse_factor=coarse_factor or None)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
 
@@ -64,11 +69,15 @@ def register(app: typer.Typer) -> None:
 
             m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video)
             bar.update(task, completed=max(iters, 1))
-        # The source says whether the video moved the value (identified, a one-sided estimate) or not (prior).
-        rows = [(name, f"{v['E']:.4g}", f"{v['nu']:.3f}", "rigid (frozen)" if v["rigid"] else v.get("source", "-"))
+        # The source says whether the video moved the value (identified, a one-sided estimate) or not (prior);
+        # the interval what the video and the discretisation leave open around it.
+        ivs = m.get("intervals", {})
+        rows = [(name, with_interval(v["E"], ivs.get(name, {}).get("E"), ".4g"),
+                 with_interval(v["nu"], ivs.get(name, {}).get("nu"), ".3f"),
+                 "rigid (frozen)" if v["rigid"] else v.get("source", "-"))
                 for name, v in m["materials"].items()]
         print_table(f"Materials of {m['scene']} ({m['iterations']} iterations, {m['stopped']}, {m['seconds']:.0f} s)",
-                    ["object", "E (Pa)", "nu", "source"], rows)
+                    ["object", "E [90% interval] (Pa)", "nu [90% interval]", "source"], rows)
         scores = [("EPE (px)", m["epe"]), ("PSNR (dB)", m["psnr"]), ("SSIM", m["ssim"])]
         if "re_mean" in m:
             scores = [("RE E", m["re_E"]), ("RE nu", m["re_nu"]), ("RE G", m["re_G"]), ("RE K", m["re_K"]),

@@ -165,6 +165,14 @@ def validation_rows(v: dict) -> list[list[str]]:
     return [[name, fixed(sc["epe"], 6), fixed(sc["psnr_masked"], 4), said] for name, sc, said in rows]
 
 
+def _discretisation_text(parameter: str, disc: dict, unit: str) -> str:
+    """'+-0.31 decades (coarse optimum 5286 Pa)' from a :class:`~endogsim.identify.uncertainty.DiscretisationError`."""
+    scale = " decades" if parameter == "E" else ""
+    beyond = ", or beyond" if disc.get("lower_bound") else ""
+    return (f"+-{disc['half_width']:.3g}{scale} (optimum {disc['coarse_best']:.4g}{unit}{beyond} on a grid "
+            f"{disc['ratio']:.2f}x coarser)")
+
+
 def _validation_section(folder: Path, rel) -> list[str]:
     """The held-out comparison of an ``endogsim validate`` folder (validate.json, heldout_*.png)."""
     v = _load_json(folder / "validate.json")
@@ -275,14 +283,21 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
             for par, v in params.items():
                 unit = " Pa" if par == "E" else ""
                 lo, hi = v["interval"]
+                stat, disc = v.get("statistical_interval"), v.get("discretisation")
                 irows.append([obj, par, f"{v['best']:.4g}{unit}", f"[{lo:.4g}, {hi:.4g}]{unit}",
+                              "" if stat is None else f"[{stat[0]:.4g}, {stat[1]:.4g}]{unit}",
+                              "" if disc is None else _discretisation_text(par, disc, unit),
                               "yes" if v["identifiable"] else "NO", v["reason"]])
         parts.append("<h2>Identifiability</h2>" + _table(
-            ["object", "parameter", "optimum", "90% interval", "identifiable", "evidence"], irows, left=6))
+            ["object", "parameter", "optimum", "90% interval", "of which the video's noise", "discretisation",
+             "identifiable", "evidence"], irows, left=8))
         parts.append('<p class="note">The optimum is where the loss was least; the value kept is in the material '
                      "table. A parameter the video does not determine (its loss changes by less than the "
                      "loss's own frame-to-frame noise across the search box, or its gradient was zero) keeps its "
-                     'initial value, labelled "prior (not identifiable from this video)".</p>')
+                     'initial value, labelled "prior (not identifiable from this video)". The 90% interval '
+                     "combines the loss's frame-to-frame noise with the discretisation's error: the grid "
+                     "convergence index of the optimum found again on a coarser grid (docs/IDENTIFICATION.md "
+                     "section 3).</p>")
     cov = metrics.get("coverage")
     if isinstance(cov, dict) and cov.get("worst"):
         w = cov["worst"]

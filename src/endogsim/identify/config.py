@@ -69,6 +69,12 @@ class IdentifyConfig:
         intervals: after optimising, measure each parameter's 90% interval and whether the video determines
             it (:mod:`endogsim.identify.uncertainty`: a few forward simulations per parameter); a parameter it
             does not determine keeps its initial value, labelled "prior (not identifiable from this video)".
+        coarse_factor: with ``intervals``, the discretisation's own error is measured too: each parameter's
+            optimum is found again along its slice at a coarser discretisation (grid x ``coarse_factor``, the
+            particle spacing and substeps scaled with it), and the grid convergence index of the move widens
+            the interval (:func:`~endogsim.identify.uncertainty.discretisation_error`; a few forward
+            simulations per parameter, each about a third of the cost of one at full resolution). None: the
+            interval holds the loss's frame-to-frame noise alone.
         render_scale: render (and compare) at this fraction of the image size; flows scale with it. Rendering
             dominates an iteration on a CPU, and 0.5 quarters it. The rasteriser's fixed screen-space
             low-pass makes reduced-scale renders differ from the area-downsampled observations by a
@@ -109,6 +115,7 @@ class IdentifyConfig:
     stability_margin: float = 0.95
     optimize_nu: bool = True
     intervals: bool = True
+    coarse_factor: float | None = 0.7
     render_scale: float = 0.5
     flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))
     frames: int | None = None
@@ -136,6 +143,8 @@ class IdentifyConfig:
                                 f"{self.stationary_patience} >= 0")
         if self.time_budget is not None and not self.time_budget > 0:
             raise MaterialError(f"time_budget = {self.time_budget} s must be > 0 (or None)")
+        if self.coarse_factor is not None and not 0 < self.coarse_factor < 1:
+            raise MaterialError(f"coarse_factor = {self.coarse_factor} must lie in (0, 1) (or None: not measured)")
         if self.frame_stride is not None and self.frame_stride < 1:
             raise MaterialError(f"frame_stride = {self.frame_stride} must be >= 1 (or None: automatic)")
         if self.flow_weight < 0 or self.track_weight < 0:

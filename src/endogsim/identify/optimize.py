@@ -42,7 +42,7 @@ from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord
 from endogsim.physics import max_stable_E
-from endogsim.scene.folder import SimScene
+from endogsim.scene.folder import SimScene, coarsened
 from endogsim.scene.forward import in_view, render_sequence, simulate_materials
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
@@ -174,6 +174,7 @@ def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig) -
     cfg.pop("iters", None)  # a resumed run may be given a larger budget
     cfg.pop("time_budget", None)
     cfg.pop("device", None)
+    cfg.pop("coarse_factor", None)  # measured after the optimisation, which it does not change
     return {"scene": str(Path(problem.folder).resolve()), "frames": problem.num_frames, "config": cfg,
             "init": init.to_json()["objects"]}
 
@@ -359,12 +360,19 @@ def identify(
             final.log10_E.copy_(best["log10_E"])
             final.nu_raw.copy_(best["nu_raw"])
         if cfg.intervals:
+            coarse, coarse_evaluate = None, None
+            if cfg.coarse_factor is not None:
+                coarse = coarsened(problem, cfg.coarse_factor)
+                coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
+                    coarse, init_field, trial, obs, cam, cfg, grad=False).per_frame
             intervals = parameter_intervals(
                 final, {o: problem.labels[o].name for o in final.object_ids},
                 lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False).per_frame,
                 lambda trial: ([math.log10(cfg.E_min)] * trial.log10_E.shape[0],
                                stable_log10_E_max(problem, trial.nu(), _slot_density(problem, init_field, trial), cfg).tolist()),
-                cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]})
+                cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
+                coarse_evaluate=coarse_evaluate,
+                coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res)
         ident = identified_field(init_field, final, intervals)
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
@@ -383,7 +391,10 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
     them (``intervals``; all of them without intervals). A parameter it does not determine keeps its initial
     value while that value lies in the parameter's 90% interval (the video cannot tell the two apart),
     labelled :data:`NOT_IDENTIFIABLE`; when the interval excludes it (the loss rises significantly on one
-    side, and the prior lies there), the estimate replaces it, labelled :data:`ONE_SIDED`."""
+    side, and the prior lies there), the estimate replaces it, labelled :data:`ONE_SIDED`. "The interval" here
+    is the statistical one (the loss's frame-to-frame noise): whether this video moved the parameter away
+    from its prior is a question about the data at this discretisation; the discretisation's own error,
+    which widens the reported interval, does not make the prior a better estimate."""
     by = {(iv.object_id, iv.parameter): iv for iv in intervals}
     recs = []
     for r in init.from_params(final).records:  # every estimate, then the priors kept
@@ -395,7 +406,7 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
                 iv, estimate, kept = by.get((sid, name)), getattr(r, name), getattr(prior, name)
                 if iv is None or iv.identifiable:
                     values[name], labels[name] = estimate, "identified"
-                elif iv.interval[0] <= kept <= iv.interval[1]:
+                elif (iv.statistical_interval or iv.interval)[0] <= kept <= (iv.statistical_interval or iv.interval)[1]:
                     values[name], labels[name] = kept, NOT_IDENTIFIABLE
                 else:
                     values[name], labels[name] = estimate, ONE_SIDED

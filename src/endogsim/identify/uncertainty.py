@@ -27,8 +27,17 @@ per-frame noise this is exact (``tests/test_uncertainty.py`` measures 90% covera
 one-sided normal test of "theta is worse than theta*", gave 97-99.8% there (intervals about twice too
 wide). The identifiability test needs more, z_s = q = 2 z_c (twice the interval's half-width on a quadratic
 loss): with z_c alone a loss of pure noise, independent of theta, passes on both sides about 23% of the
-time, with z_s about 6% (four trials per side; ``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make the
+time, with z_s about 6% (four trials per side; ``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make that
 interval too narrow: ``endogsim bench suite`` reports how often the true value falls inside (coverage).
+
+The discretisation's error is one such shared error: a simulator that is not converged moves the optimum
+itself (docs/IDENTIFICATION.md section 3). :func:`discretisation_error` measures it the way computational
+mechanics does, with Roache's grid convergence index: the optimum along the same slice at a coarser
+discretisation (grid / r, particle spacing x r, substeps / r) moves by epsilon, and the error of this one is
+taken as GCI = F_s |epsilon| / (r^p - 1) (order p = 1: tool and boundary conditions set on grid nodes;
+safety factor F_s = 1.25). The reported interval adds it to the statistical one side by side in quadrature,
+as independent errors (ASME V&V 20); the statistical interval is kept beside it, and it alone decides
+whether the video moved a parameter away from its prior.
 """
 
 from __future__ import annotations
@@ -43,8 +52,9 @@ import torch
 from endogsim.errors import EndoGSimError
 from endogsim.materials.field import MaterialParams
 
-__all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "ParameterInterval", "Slice", "paired_z", "critical_z", "significant_z",
-           "interval_from_slice", "walk_slice", "identifiability", "parameter_intervals"]
+__all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
+           "DiscretisationError", "paired_z", "critical_z", "significant_z", "interval_from_slice", "walk_slice",
+           "identifiability", "discretisation_error", "widen", "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
 LEVEL = 0.90
@@ -52,6 +62,11 @@ LEVEL = 0.90
 #: side with no significant rise nearby is tested once more at the farthest value identification could reach.
 E_STEPS = (0.1, 0.3, 1.0, math.inf)
 NU_STEPS = (0.02, 0.06, math.inf)
+#: The grid convergence index's assumed order of convergence and safety factor (Roache 1994; 1.25 where the
+#: order is known: conditions on grid nodes are first order in the cell size, measured on the `pull` scene,
+#: whose optimum at 0.7x, 1x and 1.5x the grid falls on a line in the cell size; docs/IDENTIFICATION.md).
+GCI_ORDER = 1.0
+GCI_SAFETY = 1.25
 
 
 @dataclass
@@ -74,6 +89,9 @@ class ParameterInterval:
             compared frames, nothing excluded).
         significant_z: the z above which a trial value's loss counted as significantly higher
             (:func:`significant_z`; None likewise).
+        statistical_interval: [lo, hi] the interval from the loss's frame-to-frame noise alone (None: no
+            discretisation error was measured, and ``interval`` is this one).
+        discretisation: :class:`DiscretisationError` as a dict (None: not measured).
     """
 
     object_id: int
@@ -88,6 +106,8 @@ class ParameterInterval:
     first_gradient: float | None = None
     critical_z: float | None = None
     significant_z: float | None = None
+    statistical_interval: list[float] | None = None
+    discretisation: dict | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -231,6 +251,86 @@ def identifiability(sl: Slice, first_gradient: float | None, span: str, signific
                    f"{' or '.join(flat)} the optimum within {span}")
 
 
+@dataclass
+class DiscretisationError:
+    """How far a parameter's optimum moves at a coarser discretisation, and the error bar that implies.
+
+    Attributes:
+        ratio: r, this discretisation's grid over the coarse one's (> 1).
+        coarse_best: the optimum along the parameter's slice at the coarse discretisation (slice coordinate:
+            log10 E or nu).
+        shift: coarse_best - best (decades of E, or nu).
+        half_width: the grid convergence index GCI_SAFETY |shift| / (r^GCI_ORDER - 1), in the same coordinate.
+        lower_bound: the coarse loss still fell at the last value its walk reached (a failed simulation ended
+            it short of the box's end): the coarse optimum lies there or beyond, and ``shift`` is a lower bound.
+        profile: [[value, coarse loss], ...] in the order evaluated.
+    """
+
+    ratio: float
+    coarse_best: float
+    shift: float
+    half_width: float
+    lower_bound: bool
+    profile: list[list[float]]
+
+
+def discretisation_error(best: float, steps: tuple[float, ...], box: tuple[float, float],
+                         coarse_loss: Callable[[float], float], ratio: float) -> DiscretisationError:
+    """The optimum of ``coarse_loss`` along a slice through ``best``, and the grid convergence index it gives.
+
+    On each side the walk takes ``steps`` outward from ``best`` (as :func:`walk_slice`, clipped to ``box``)
+    while the coarse loss keeps falling, and stops at the first value that is no lower, at the box's end or at a simulation that
+    fails (:class:`~endogsim.errors.EndoGSimError`). The coarse optimum is the least value evaluated, refined
+    by the parabola through it and its two neighbours when it has one on each side.
+
+    Args:
+        best: the optimum at the identification's discretisation (slice coordinate).
+        steps: distances from ``best``, increasing (``math.inf``: the box's end).
+        box: the search box in the same coordinate.
+        coarse_loss: trial value -> the loss at the coarse discretisation (the other parameters at the optimum).
+        ratio: r > 1, the identification's grid over the coarse grid.
+    """
+    if not ratio > 1:
+        raise ValueError(f"a coarser discretisation has a grid ratio > 1, got {ratio}")
+    points = {best: coarse_loss(best)}
+    stopped_short = {-1: False, 1: False}
+    for side in (-1, 1):
+        last_v, last_l = best, points[best]
+        for step in steps:
+            v = min(max(best + side * step, box[0]), box[1])
+            if abs(v - last_v) < 1e-9:
+                break  # the box ends here
+            try:
+                loss = coarse_loss(v)
+            except EndoGSimError:
+                stopped_short[side] = True
+                break
+            points[v] = loss
+            if not loss < last_l:
+                break
+            last_v, last_l = v, loss
+    xs = sorted(points)
+    i = min(range(len(xs)), key=lambda k: (points[xs[k]], abs(xs[k] - best)))  # a tie: the nearer value
+    x = xs[i]
+    if 0 < i < len(xs) - 1:  # the parabola's vertex through the least value and its neighbours
+        (x0, x1, x2), (y0, y1, y2) = xs[i - 1:i + 2], (points[v] for v in xs[i - 1:i + 2])
+        den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+        if den != 0:
+            x = min(max(x1 - 0.5 * ((x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)) / den, x0), x2)
+    lower = (i == 0 and stopped_short[-1]) or (i == len(xs) - 1 and stopped_short[1])
+    shift = x - best
+    return DiscretisationError(ratio=float(ratio), coarse_best=float(x), shift=float(shift),
+                               half_width=GCI_SAFETY * abs(shift) / (ratio ** GCI_ORDER - 1.0),
+                               lower_bound=bool(lower), profile=[[v, points[v]] for v in points])
+
+
+def widen(interval: list[float], best: float, half_width: float, box: tuple[float, float]) -> list[float]:
+    """``interval`` around ``best`` with ``half_width`` added to each side in quadrature (independent errors),
+    clipped to ``box``; a side already at the box's end stays there."""
+    lo, hi = interval
+    return [max(box[0], best - math.hypot(best - lo, half_width)), min(box[1], best + math.hypot(hi - best, half_width))]
+
+
 def parameter_intervals(
     params: MaterialParams,
     object_names: dict[int, str],
@@ -239,6 +339,8 @@ def parameter_intervals(
     optimise_nu: bool,
     first_gradients: dict[str, list[float]] | None = None,
     level: float = LEVEL,
+    coarse_evaluate: Callable[[MaterialParams], dict[int, float]] | None = None,
+    coarse_ratio: float | None = None,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -250,8 +352,12 @@ def parameter_intervals(
         optimise_nu: whether nu was identified (else only E gets an interval).
         first_gradients: {"log10_E": [...], "nu_raw": [...]} per slot at the first iteration.
         level: the intervals' level (the critical z follows from it and the number of compared frames).
+        coarse_evaluate: like ``evaluate`` at a coarser discretisation (None: no discretisation error is
+            measured); its optimum along each slice gives :func:`discretisation_error`, added to the interval.
+        coarse_ratio: this discretisation's grid over the coarse one's (> 1; with ``coarse_evaluate``).
     """
     reference = evaluate(params)
+    coarse_cache: dict[tuple, float] = {}
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     out = []
     for slot in range(params.log10_E.shape[0]):
@@ -275,13 +381,29 @@ def parameter_intervals(
             to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
             for v, message in sl.failures:
                 reason += f"; the simulation at {what} = {to_value(v):.4g} failed ({message}), which ended the slice there"
+            statistical, disc = None, None
+            if coarse_evaluate is not None:
+                def coarse_loss(v: float, slot=slot, what=what) -> float:
+                    trial = _with_value(params, slot, what, v)
+                    key = (tuple(trial.log10_E.tolist()), tuple(trial.nu_raw.tolist()))
+                    if key not in coarse_cache:  # the optimum itself starts every parameter's walk
+                        coarse_cache[key] = float(sum(coarse_evaluate(trial).values()))
+                    return coarse_cache[key]
+
+                err = discretisation_error(best, steps, box, coarse_loss, float(coarse_ratio))
+                statistical = [to_value(lo), to_value(hi)]
+                lo, hi = widen([lo, hi], best, err.half_width, box)
+                disc = asdict(err)
+                disc["coarse_best"] = to_value(err.coarse_best)
+                disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
                 identifiable=ok, reason=reason,
                 slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
                 critical_z=threshold if math.isfinite(threshold) else None,
-                significant_z=significance if math.isfinite(significance) else None))
+                significant_z=significance if math.isfinite(significance) else None,
+                statistical_interval=statistical, discretisation=disc))
     return out
 
 

@@ -75,9 +75,15 @@ def plan_discretisation(objects: Sequence[SceneObject], box_size: float, thickne
 
 
 def refine(settings: SimSettings, objects: Sequence[SceneObject], box_size: float, frame_dt: float,
-           max_speed: float = 0.0, factor: int = 2, cfl_number: float = 0.5) -> SimSettings:
-    """``settings`` refined by ``factor``: the grid times ``factor``, the particle spacing divided by it, and at
-    least ``factor`` times the substeps (more if the finer cell's CFL rule asks for them)."""
+           max_speed: float = 0.0, factor: float = 2, cfl_number: float = 0.5) -> SimSettings:
+    """``settings`` refined by ``factor``: the grid times ``factor`` (rounded), the particle spacing divided by
+    the grid's ratio (the same particles per cell), and at least that ratio times the substeps (more if the
+    new cell's CFL rule asks for them). A ``factor`` below 1 coarsens (identification's discretisation-error
+    estimate, :mod:`endogsim.identify.uncertainty`)."""
+    if not factor > 0:
+        raise DataError(f"refinement factor {factor} must be > 0")
+    grid = max(1, round(settings.grid * factor))
+    ratio = grid / settings.grid
     spacing = settings.particle_spacing or box_size / settings.grid / 2
-    return sim_settings(objects, box_size, settings.grid * factor, frame_dt, settings.substeps * factor, max_speed,
-                        cfl_number, particle_spacing=spacing / factor)
+    return sim_settings(objects, box_size, grid, frame_dt, max(1, math.ceil(settings.substeps * ratio - 1e-9)),
+                        max_speed, cfl_number, particle_spacing=spacing / ratio)

@@ -20,7 +20,7 @@ and the renderer's (Gaussians, camera, per-Gaussian binding to particles). Units
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +40,12 @@ from endogsim.physics import (
     Simulator,
     bind_gaussians,
 )
+from endogsim.scene.discretisation import refine
 from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces, tool_colliders
-from endogsim.scene.schema import SceneSpec, load_scene_spec
+from endogsim.scene.schema import SceneSpec, SimSettings, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
-__all__ = ["SimScene", "load_sim_scene", "read_observations"]
+__all__ = ["SimScene", "coarsened", "load_sim_scene", "read_observations"]
 
 
 @dataclass
@@ -131,13 +132,16 @@ def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.nd
     return out_frames, masks, flow, valid
 
 
-def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu") -> SimScene:
+def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu",
+                   settings: SimSettings | None = None) -> SimScene:
     """Read a scene folder into an :class:`SimScene`.
 
     Args:
         folder: a folder with ``scene.json`` (``endogsim synth`` output layout).
         frames: use only the first ``frames`` frames (>= 2); default all.
         device: simulator device ("cpu" or "cuda").
+        settings: the discretisation to simulate at (grid, particle spacing, substeps); default the
+            scenario's identification settings (:func:`endogsim.scene.discretisation.refine` makes others).
     """
     from endogsim.gaussians.ply import read_ply
 
@@ -165,7 +169,7 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         raise DataError(f"{folder}: scene.json has no deformable object to identify")
 
     sc = spec.scenario
-    ident = sc.identification
+    ident = sc.identification if settings is None else settings
     box = SimBox(tuple(float(v) for v in sc.box_lo), float(sc.box_size))
     dx = box.size / ident.grid
     # Particles always come from the frame-0 Gaussians and the scenario's description, as on a real video
@@ -201,3 +205,14 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
                            binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
                            viewmats=viewmats, tracks=tracks)
+
+
+def coarsened(scene: SimScene, factor: float) -> SimScene:
+    """``scene`` read again from its folder at a coarser discretisation: the grid times ``factor`` (< 1),
+    the particle spacing and the substeps scaled with it (:func:`endogsim.scene.discretisation.refine`);
+    the same frames, camera, Gaussians and scenario. Identification's discretisation-error estimate
+    (:func:`endogsim.identify.uncertainty.discretisation_error`) compares the two."""
+    sc = scene.spec.scenario
+    ident = replace(sc.identification, particle_spacing=sc.spacing(sc.identification))
+    settings = refine(ident, scene.spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
+    return load_sim_scene(scene.folder, scene.num_frames, scene.mpm.device, settings=settings)
