@@ -207,13 +207,34 @@ def test_cpu_and_cuda_trajectories_agree():
         pytest.skip("CUDA is not available")
     parts = Particles.box((0.04, 0.04, 0.04), (0.06, 0.06, 0.06), 0.0015)
     scen = Scenario(BOX, gravity=(0, -9.81, 0), anchors=[Anchor(lo=(0, 0, 0), hi=(0.1, 0.0416, 0.1))])
-    out = [simulate(parts, _mats(), scen, MPMConfig(grid_res=32, device=d), num_frames=6).positions for d in ("cpu", "cuda")]
+    out = [simulate(parts, _mats(), scen, MPMConfig(grid_res=32, device=d), num_frames=6).positions.cpu()
+           for d in ("cpu", "cuda")]
     assert (out[0] - out[1]).abs().max() < 1e-5
 
 
 # --------------------------------------------------------------------------------------------------
 # Particles from Gaussians, Gaussians following particles
 # --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("spacing", [1.0e-3, 0.5e-3, 0.2e-3])
+def test_a_slab_filled_finer_than_its_surface_samples_keeps_its_volume_and_outline(spacing):
+    """A 30 x 20 mm patch 0.1 m in front of the camera, sampled every 0.8 mm (a reconstruction's Gaussians),
+    filled 4 mm deep: at every lattice spacing, also 4x finer than the samples, the slab holds its volume and
+    only its outline band lies near the footprint's edge (a surface map finer than its samples fell apart into
+    holes, and every point was an edge point)."""
+    from endogsim.physics.filling import fill_behind_surface
+
+    u = np.arange(-0.015, 0.015 + 1e-9, 0.0008)
+    v = np.arange(-0.010, 0.010 + 1e-9, 0.0008)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    pts = np.stack([U.ravel(), V.ravel(), np.full(U.size, 0.1)], 1)
+    cam = Camera(torch.tensor([[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]]), 320, 240)
+    solid, _ = fill_behind_surface(pts, cam, 0.004, spacing)
+    volume = len(solid.x) * spacing ** 3
+    assert 0.85 < volume / (0.030 * 0.020 * 0.004) < 1.2, volume
+    near_edge = float((solid.edge_distance < 0.002).mean())
+    assert 0.2 < near_edge < 0.45, near_edge  # the 2-mm band of a 30 x 20 mm patch: 31% of its area
 
 
 def _surface_gaussians(n=20, depth=0.1, sh_degree=0):

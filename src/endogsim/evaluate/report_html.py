@@ -297,7 +297,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                      'initial value, labelled "prior (not identifiable from this video)". The 90% interval '
                      "combines the loss's frame-to-frame noise with the discretisation's error: the grid "
                      "convergence index of the optimum found again on a coarser grid (docs/IDENTIFICATION.md "
-                     "section 3).</p>")
+                     "section 1).</p>")
     cov = metrics.get("coverage")
     if isinstance(cov, dict) and cov.get("worst"):
         w = cov["worst"]

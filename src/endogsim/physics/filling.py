@@ -92,8 +92,10 @@ class SurfaceMap:
 
 def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2) -> SurfaceMap:
     """The :class:`SurfaceMap` of surface samples ``points`` [N, 3] (metres, world), on image-plane cells a
-    little finer than ``spacing`` at the surface's depth; holes up to about ``closing_cells`` are closed."""
+    little finer than ``spacing`` at the surface's depth, but never finer than half the samples' own spacing;
+    holes up to about ``closing_cells`` are closed."""
     from scipy import ndimage
+    from scipy.spatial import cKDTree
 
     pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
@@ -103,7 +105,11 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
         raise SimulationError("surface points behind the camera cannot be seen along viewing rays")
     uv = pc[:, :2] / pc[:, 2:3]
     rng = np.linalg.norm(pc, axis=1)
-    du = 0.7 * spacing / float(np.median(pc[:, 2]))
+    # A map finer than the samples is a map of dots: with samples more than two cells apart the closing below
+    # no longer joins them, and the footprint falls apart into holes whose edges make every lattice point a
+    # "border" point (seen filling `tiny`, Gaussians 0.8 mm apart, at 4x its grid: every particle pinned).
+    sample_spacing = float(np.median(cKDTree(uv).query(uv, k=2)[0][:, 1]))
+    du = max(0.7 * spacing / float(np.median(pc[:, 2])), sample_spacing / 2)
     lo = uv.min(0) - 2 * du
     shape = tuple((np.ceil((uv.max(0) + 2 * du - lo) / du)).astype(int) + 1)
     ij = np.floor((uv - lo) / du).astype(int)
