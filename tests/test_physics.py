@@ -196,6 +196,34 @@ def test_particles_thrown_out_of_the_domain_stay_finite_and_inside():
         Particles(torch.tensor([[float("nan"), 0.0, 0.0]]), torch.ones(1), torch.zeros(1, dtype=torch.int64))
 
 
+def test_a_block_on_a_tilted_support_sticks_with_friction_and_slides_without():
+    """Gravity tilted 30 degrees from the support's normal: on a "support" (friction while pressed) the block
+    stays put; on a "slip_support" it slides down the slope like a frictionless block, s = g sin(30) t^2 / 2."""
+    g, T, dt = 9.81, 8, 1.0 / 200
+    gravity = (g * math.sin(math.radians(30)), 0.0, -g * math.cos(math.radians(30)))
+    parts = Particles.box((0.04, 0.04, 0.0416), (0.056, 0.056, 0.05), 0.001)
+    slide = {}
+    for kind in ("support", "slip_support"):
+        under = Anchor(lo=(0.0, 0.0, 0.0), hi=(0.1, 0.1, 0.0416), kind=kind, normal=(0.0, 0.0, 1.0))  # 0.5 mm under it
+        scen = Scenario(BOX, gravity=gravity, anchors=[under])
+        res = simulate(parts, _mats(E=5e4), scen, MPMConfig(grid_res=64, frame_dt=dt, damping=0.0), num_frames=T)
+        slide[kind] = float((res.positions[-1] - parts.x)[:, 0].mean())
+        assert float((res.positions[-1] - parts.x)[:, 2].mean()) > -1e-3  # neither sinks into the support
+    t = (T - 1) * dt
+    assert abs(slide["support"]) < 0.05 * gravity[0] * t ** 2 / 2
+    assert slide["slip_support"] == pytest.approx(gravity[0] * t ** 2 / 2, rel=0.15)
+
+
+def test_a_scene_chooses_its_back_face_support_with_or_without_friction():
+    from endogsim.errors import DataError
+    from endogsim.scene.schema import ObjectBoundary
+
+    for back in ("support", "slip_support", "fixed", "free"):
+        assert ObjectBoundary.from_json({"back_face": back}).back_face == back
+    with pytest.raises(DataError, match="slip_support"):
+        ObjectBoundary.from_json({"back_face": "glue"})
+
+
 @pytest.mark.gpu
 def test_cpu_and_cuda_trajectories_agree():
     import warp as wp

@@ -89,26 +89,28 @@ class Anchor:
         (tissue lying on the anatomy behind it does not slide under its weight, but can be lifted off).
         Give the region as the space behind the tissue's back face: conditions set on nodes by geometry
         converge with the grid, those inferred from particle layers do not.
+      - "slip_support": the same separable support without friction: a node moving into it loses only that
+        component of its velocity and slides along it (wet tissue on wet anatomy).
 
     Attributes:
         lo, hi: world box corners (metres), or None.
         region: indicator of world points (instead of a box), or None.
-        kind: "fixed" | "sticky" | "slip" | "support".
-        normal: unit normal (world) for "slip" and "support" (for a support: pointing out of it, into the
+        kind: "fixed" | "sticky" | "slip" | "support" | "slip_support".
+        normal: unit normal (world) for "slip" and the supports (for a support: pointing out of it, into the
             tissue), or a field of normals at world points.
         particle_mask: [P] bool, particles to pin ("fixed" only).
     """
 
     lo: tuple[float, float, float] | None = None
     hi: tuple[float, float, float] | None = None
-    kind: Literal["fixed", "sticky", "slip", "support"] = "fixed"
+    kind: Literal["fixed", "sticky", "slip", "support", "slip_support"] = "fixed"
     normal: tuple[float, float, float] | NormalField = (0.0, 0.0, 1.0)
     particle_mask: torch.Tensor | np.ndarray | None = None
     region: Region | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("fixed", "sticky", "slip", "support"):
-            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip|support")
+        if self.kind not in ("fixed", "sticky", "slip", "support", "slip_support"):
+            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip|support|slip_support")
         if (self.lo is None) != (self.hi is None):
             raise SimulationError("Anchor needs both lo and hi (or neither)")
         if self.lo is not None and self.region is not None:
@@ -117,7 +119,7 @@ class Anchor:
             raise SimulationError("Anchor needs a box (lo, hi), a region or a particle_mask")
         if self.particle_mask is not None and self.kind != "fixed":
             raise SimulationError("Anchor.particle_mask is only meaningful for kind 'fixed'")
-        if self.kind in ("slip", "support") and not callable(self.normal) and float(np.linalg.norm(self.normal)) < 1e-9:
+        if self.kind in ("slip", "support", "slip_support") and not callable(self.normal) and float(np.linalg.norm(self.normal)) < 1e-9:
             raise SimulationError(f"Anchor.normal must be non-zero for a {self.kind} anchor")
 
     def contains(self, points: np.ndarray) -> np.ndarray:

@@ -247,7 +247,8 @@ class MPMEngine:
         n = self.n
         kinds = np.zeros((n,) * 3, dtype=np.int32)
         normals = np.zeros((n,) * 3 + (3,), dtype=np.float64)
-        code = {"fixed": K.BC_STICKY, "sticky": K.BC_STICKY, "slip": K.BC_SLIP, "support": K.BC_SUPPORT}
+        code = {"fixed": K.BC_STICKY, "sticky": K.BC_STICKY, "slip": K.BC_SLIP, "support": K.BC_SUPPORT,
+                "slip_support": K.BC_SLIP_SUPPORT}
         ax = np.arange(n, dtype=np.float64) * (self.box.size / n)
         for i in range(n):  # one plane of nodes at a time keeps the memory bounded
             nodes = np.stack(np.meshgrid([ax[i]], ax, ax, indexing="ij"), -1).reshape(-1, 3) + np.asarray(self.box.lo)
@@ -256,7 +257,7 @@ class MPMEngine:
                 inside = a.contains(nodes) & (k_plane != K.BC_STICKY)
                 if inside.any():
                     k_plane[inside] = code[a.kind]
-                    if a.kind in ("slip", "support"):
+                    if a.kind in ("slip", "support", "slip_support"):
                         n_plane[inside] = a.normals(nodes[inside])
         return kinds, normals
 

@@ -32,6 +32,7 @@ BC_FREE = 0
 BC_STICKY = 1
 BC_SLIP = 2
 BC_SUPPORT = 3  # separable: a node moving into the support stops, one moving away is free
+BC_SLIP_SUPPORT = 4  # separable and frictionless: a node moving into the support loses that component only
 
 
 @wp.struct
@@ -326,6 +327,12 @@ def grid_update(
         # anatomy behind it does not slide on it); one moving away from it is free (it lifts off).
         if wp.dot(v, domain.bc_normal[i, j, k]) < 0.0:
             v = wp.vec3(0.0)
+    elif kind == BC_SLIP_SUPPORT:
+        # Separable, frictionless: pressed on the support, a node keeps only its tangential velocity.
+        nrm = domain.bc_normal[i, j, k]
+        vn = wp.dot(v, nrm)
+        if vn < 0.0:
+            v = v - vn * nrm
 
     # Domain walls: nodes within `pad` cells of a face. Slip walls only stop motion through the wall.
     idx = wp.vec3i(i, j, k)

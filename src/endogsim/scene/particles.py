@@ -8,7 +8,7 @@ particles) or a procedural scene's true surface (the benchmark's ground truth, a
    discretisation's particle spacing, aligned with the simulation grid (two particles per cell and axis at
    half-cell spacing: :func:`endogsim.physics.filling.fill_behind_surface`);
 2. its boundary conditions (``scenario.boundary(name)``) are set by geometry on the grid nodes (the space
-   behind the back face is a fixed wall or a frictionless support, outside an optional release disc; a band
+   behind the back face is a fixed wall or a support, with or without friction, outside an optional release disc; a band
    along the outline holds still), and on the particles they contain (pinned: the band along the outline,
    and the deepest layer of a "fixed" back face).
 
@@ -76,8 +76,8 @@ class SlabConditions:
         out = []
         if self.boundary.back_face == "fixed":
             out.append(Anchor(kind="sticky", region=self.behind))
-        elif self.boundary.back_face == "support":
-            out.append(Anchor(kind="support", region=self.behind, normal=self.towards_camera))
+        elif self.boundary.back_face in ("support", "slip_support"):
+            out.append(Anchor(kind=self.boundary.back_face, region=self.behind, normal=self.towards_camera))
         if self.boundary.border > 0:
             out.append(Anchor(kind="sticky", region=self.border))
         return out

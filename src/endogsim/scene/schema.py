@@ -111,7 +111,8 @@ class ObjectBoundary:
     Attributes:
         back_face: what holds the hidden back of the tissue (the deepest particle layer of its slab):
             "fixed" (glued to the anatomy behind), "support" (resting on it: pushed, never pulled, so it can be
-            lifted off) or "free".
+            lifted off; it does not slide while pressed), "slip_support" (the same without friction: wet tissue
+            on wet anatomy) or "free".
         border: width (metres) of the band along the object's outline that is held fixed (the tissue goes
             on beyond the view); 0 for none.
         release: (centre [x, y] metres, radius metres) of a disc where the back face is free, or None.
@@ -125,8 +126,8 @@ class ObjectBoundary:
     def from_json(d: dict[str, Any]) -> "ObjectBoundary":
         back = d.get("back_face", False)
         back = {True: "fixed", False: "free"}.get(back, back) if isinstance(back, bool) else str(back)
-        if back not in ("fixed", "support", "free"):
-            raise DataError(f"boundary condition back_face {back!r} is not fixed|support|free")
+        if back not in ("fixed", "support", "slip_support", "free"):
+            raise DataError(f"boundary condition back_face {back!r} is not fixed|support|slip_support|free")
         rel = d.get("release")
         release = None if rel is None else ((float(rel["center"][0]), float(rel["center"][1])), float(rel["radius"]))
         return ObjectBoundary(back, float(d.get("border", 0.0)), release)
