@@ -295,3 +295,24 @@ def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_sta
     assert ident[1].E == pytest.approx(10 ** best) and ident[1].source == "identified"
     E.identifiable = False  # one-sided: the statistical interval excludes the prior, so the estimate stays
     assert identified_field(init, params, ivs)[1].E == pytest.approx(10 ** best)
+
+
+def test_a_coarser_simulation_that_fails_leaves_the_statistical_interval_and_says_so():
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E += 0.5
+    best = float(params.log10_E.detach()[0])
+
+    def per_frame(trial) -> dict[int, float]:
+        return {t: 0.2 + (1.0 + 0.01 * t) * (float(trial.log10_E[0]) - best) ** 2 for t in range(8)}
+
+    def fails(trial):
+        raise SimulationError("diverged at frame 3")
+
+    ivs = parameter_intervals(params, {1: "liver"}, per_frame, lambda trial: ([1.7], [6.0]), False,
+                              coarse_evaluate=fails, coarse_ratio=1.4)
+    assert ivs[0].discretisation is None and ivs[0].statistical_interval is None
+    assert "discretisation error was not measured" in ivs[0].reason and "diverged at frame 3" in ivs[0].reason

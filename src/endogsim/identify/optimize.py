@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from endogsim.determinism import deterministic
-from endogsim.errors import DataError, IdentificationError, SimulationError
+from endogsim.errors import DataError, EndoGSimError, IdentificationError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import (
@@ -362,9 +362,14 @@ def identify(
         if cfg.intervals:
             coarse, coarse_evaluate = None, None
             if cfg.coarse_factor is not None:
-                coarse = coarsened(problem, cfg.coarse_factor)
-                coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
-                    coarse, init_field, trial, obs, cam, cfg, grad=False).per_frame
+                try:
+                    coarse = coarsened(problem, cfg.coarse_factor)
+                except EndoGSimError as e:  # e.g. a tissue thinner than a coarse particle: intervals without it
+                    notes.append(f"the discretisation error was not measured: the scene at {cfg.coarse_factor:g}x "
+                                 f"its grid could not be built ({e})")
+                else:
+                    coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
+                        coarse, init_field, trial, obs, cam, cfg, grad=False).per_frame
             intervals = parameter_intervals(
                 final, {o: problem.labels[o].name for o in final.object_ids},
                 lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False).per_frame,

@@ -390,12 +390,16 @@ def parameter_intervals(
                         coarse_cache[key] = float(sum(coarse_evaluate(trial).values()))
                     return coarse_cache[key]
 
-                err = discretisation_error(best, steps, box, coarse_loss, float(coarse_ratio))
-                statistical = [to_value(lo), to_value(hi)]
-                lo, hi = widen([lo, hi], best, err.half_width, box)
-                disc = asdict(err)
-                disc["coarse_best"] = to_value(err.coarse_best)
-                disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
+                try:
+                    err = discretisation_error(best, steps, box, coarse_loss, float(coarse_ratio))
+                except EndoGSimError as e:  # no coarse optimum: the interval stays the statistical one, and says so
+                    reason += f"; the discretisation error was not measured (the coarser simulation failed: {e})"
+                else:
+                    statistical = [to_value(lo), to_value(hi)]
+                    lo, hi = widen([lo, hi], best, err.half_width, box)
+                    disc = asdict(err)
+                    disc["coarse_best"] = to_value(err.coarse_best)
+                    disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
