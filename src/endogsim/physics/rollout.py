@@ -236,9 +236,11 @@ class Simulator:
                                               materials.density, *self._static(materials), grad=False)
             states, _ = self.engine.forward(box.to_sim(x0.double()).float().cpu(),
                                             box.vec_to_sim(v0.double()).float().cpu(), mats, step, keep_before_last=False)
-            xs = box.to_world(stack_arrays([s[0] for s in states]).double()).to(x0.dtype)
+            # On the particles' device whatever the simulator's (a CUDA rollout of CPU particles returns CPU
+            # tensors, as the differentiable rollout does).
+            xs = box.to_world(stack_arrays([s[0] for s in states]).double()).to(device=x0.device, dtype=x0.dtype)
             xs[0] = x0
-            xs, Fs = self._clip(xs, stack_arrays([s[3] for s in states]))
+            xs, Fs = self._clip(xs, stack_arrays([s[3] for s in states]).to(x0.device))
         times = torch.arange(self.num_frames, dtype=torch.float64) * self.config.frame_dt
         return SimResult(xs, Fs, times, step.substeps, step.dt,
                          [c.trajectory()[: self.num_frames].to(x0.dtype) for c in self.scenario.colliders])
