@@ -262,7 +262,7 @@ def test_the_discretisation_error_widens_each_side_in_quadrature_within_the_sear
 
 
 def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_statistical_one():
-    """Through the code path identification uses: the coarse loss's optimum 0.3 decades stiffer widens E's
+    """Through the code path identification uses: the coarse loss's optimum 0.1 decades stiffer widens E's
     interval; whether the prior is kept is decided by the statistical interval alone."""
     import torch
 
@@ -280,12 +280,12 @@ def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_sta
         return {t: 0.2 + (1.0 + noise[t]) * (e ** 2 + n ** 2) for t in range(12)}
 
     ivs = parameter_intervals(params, {1: "liver"}, lambda trial: per_frame(trial, best), lambda trial: ([1.7], [6.0]),
-                              True, coarse_evaluate=lambda trial: per_frame(trial, best + 0.3), coarse_ratio=1.4)
+                              True, coarse_evaluate=lambda trial: per_frame(trial, best + 0.1), coarse_ratio=1.4)
     E = ivs[0]
     assert E.identifiable and E.statistical_interval is not None and E.discretisation is not None
-    assert E.discretisation["shift"] == pytest.approx(0.3, abs=1e-6)
-    assert E.discretisation["coarse_best"] == pytest.approx(10 ** (best + 0.3), rel=1e-5)
-    u = GCI_SAFETY * 0.3 / 0.4
+    assert E.discretisation["shift"] == pytest.approx(0.1, abs=1e-6)
+    assert E.discretisation["coarse_best"] == pytest.approx(10 ** (best + 0.1), rel=1e-5)
+    u = GCI_SAFETY * 0.1 / 0.4
     lo, hi = (math.log10(v) for v in E.statistical_interval)
     assert [math.log10(v) for v in E.interval] == pytest.approx([best - math.hypot(best - lo, u),
                                                                  best + math.hypot(hi - best, u)], abs=1e-9)
