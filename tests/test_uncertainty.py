@@ -316,3 +316,23 @@ def test_a_coarser_simulation_that_fails_leaves_the_statistical_interval_and_say
                               coarse_evaluate=fails, coarse_ratio=1.4)
     assert ivs[0].discretisation is None and ivs[0].statistical_interval is None
     assert "discretisation error was not measured" in ivs[0].reason and "diverged at frame 3" in ivs[0].reason
+
+
+def test_a_discretisation_error_over_the_whole_search_box_makes_a_parameter_not_identifiable():
+    """The video determines E at this discretisation (the loss rises on both sides), but on a coarser grid
+    the optimum moves so far that the interval spans the search box: not identifiable, said why, and the
+    prior, inside the statistical interval, is kept."""
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    best = float(params.log10_E.detach()[0])  # the optimum is the prior, 3000 Pa
+
+    def per_frame(trial, centre: float) -> dict[int, float]:
+        return {t: 0.2 + (1.0 + 0.01 * t) * (float(trial.log10_E[0]) - centre) ** 2 for t in range(8)}
+
+    ivs = parameter_intervals(params, {1: "liver"}, lambda trial: per_frame(trial, best), lambda trial: ([1.7], [6.0]),
+                              False, coarse_evaluate=lambda trial: per_frame(trial, best + 1.0), coarse_ratio=1.4)
+    E = ivs[0]
+    assert E.interval == pytest.approx([10 ** 1.7, 10 ** 6.0]) and E.statistical_interval[1] < 10 ** 4
+    assert not E.identifiable and "spans the search box" in E.reason
+    ident = identified_field(init, params, ivs)
+    assert ident[1].E == pytest.approx(3000.0) and ident[1].source == f"identified (E: {NOT_IDENTIFIABLE})"

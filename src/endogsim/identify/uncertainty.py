@@ -401,6 +401,13 @@ def parameter_intervals(
                     disc = asdict(err)
                     disc["coarse_best"] = to_value(err.coarse_best)
                     disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
+                    if ok and lo <= box[0] + 1e-9 and hi >= box[1] - 1e-9:
+                        # The video determines it at this discretisation, but the discretisation itself does
+                        # not: an interval over the whole search box is "not identifiable" (issue 21).
+                        ok = False
+                        reason = (f"the loss rises significantly on both sides, but the discretisation's error "
+                                  f"(the optimum moves {err.shift:+.3g} on a grid {err.ratio:.2f}x coarser) spans "
+                                  "the search box")
             out.append(ParameterInterval(
                 object_id=oids[0], name=name, parameter=what, best=to_value(best),
                 interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
