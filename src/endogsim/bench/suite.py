@@ -311,8 +311,9 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
              f"{summary['coverage_nu']:.2f} of {summary['n_nu']}, pooled {summary['coverage']:.2f} (nominal 0.90); "
              f"mean width: E {summary['mean_width_E_decades']:.3g} decades, nu {summary['mean_width_nu']:.3g}")
     if not math.isnan(summary["coverage_statistical"]):
-        cover += (f"; with the frame-to-frame noise alone (no discretisation error) E {summary['coverage_statistical_E']:.2f}, "
-                  f"nu {summary['coverage_statistical_nu']:.2f}, pooled {summary['coverage_statistical']:.2f}")
+        cover += (f"; with the frame-to-frame noise alone (no discretisation error) E "
+                  f"{summary['coverage_statistical_E']:.2f}, nu {summary['coverage_statistical_nu']:.2f}, pooled "
+                  f"{summary['coverage_statistical']:.2f}")
     rows3 = []
     for init, on in RUNS:
         key = f"{init}_{'on' if on else 'off'}"

@@ -165,12 +165,13 @@ def validation_rows(v: dict) -> list[list[str]]:
     return [[name, fixed(sc["epe"], 6), fixed(sc["psnr_masked"], 4), said] for name, sc, said in rows]
 
 
-def _discretisation_text(parameter: str, disc: dict, unit: str) -> str:
-    """'+-0.31 decades (coarse optimum 5286 Pa)' from a :class:`~endogsim.identify.uncertainty.DiscretisationError`."""
-    scale = " decades" if parameter == "E" else ""
+def discretisation_text(parameter: str, disc: dict) -> str:
+    """'+-0.63 decades (the optimum on a grid 1.42x coarser: 6474 Pa, -0.0888 decades)' from the dict of a
+    :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu")."""
+    unit, scale = (" Pa", " decades") if parameter == "E" else ("", "")
     beyond = ", or beyond" if disc.get("lower_bound") else ""
-    return (f"+-{disc['half_width']:.3g}{scale} (optimum {disc['coarse_best']:.4g}{unit}{beyond} on a grid "
-            f"{disc['ratio']:.2f}x coarser)")
+    return (f"+-{disc['half_width']:.3g}{scale} (the optimum on a grid {disc['ratio']:.2f}x coarser: "
+            f"{disc['coarse_best']:.4g}{unit}, {disc['shift']:+.3g}{scale}{beyond})")
 
 
 def _validation_section(folder: Path, rel) -> list[str]:
@@ -286,7 +287,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                 stat, disc = v.get("statistical_interval"), v.get("discretisation")
                 irows.append([obj, par, f"{v['best']:.4g}{unit}", f"[{lo:.4g}, {hi:.4g}]{unit}",
                               "" if stat is None else f"[{stat[0]:.4g}, {stat[1]:.4g}]{unit}",
-                              "" if disc is None else _discretisation_text(par, disc, unit),
+                              "" if disc is None else discretisation_text(par, disc),
                               "yes" if v["identifiable"] else "NO", v["reason"]])
         parts.append("<h2>Identifiability</h2>" + _table(
             ["object", "parameter", "optimum", "90% interval", "of which the video's noise", "discretisation",

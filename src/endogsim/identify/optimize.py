@@ -411,7 +411,9 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
                 iv, estimate, kept = by.get((sid, name)), getattr(r, name), getattr(prior, name)
                 if iv is None or iv.identifiable:
                     values[name], labels[name] = estimate, "identified"
-                elif (iv.statistical_interval or iv.interval)[0] <= kept <= (iv.statistical_interval or iv.interval)[1]:
+                    continue
+                lo, hi = iv.statistical_interval or iv.interval
+                if lo <= kept <= hi:
                     values[name], labels[name] = kept, NOT_IDENTIFIABLE
                 else:
                     values[name], labels[name] = estimate, ONE_SIDED

@@ -28,6 +28,7 @@ from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
+from endogsim.evaluate.report_html import discretisation_text
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import IdentifyResult
 from endogsim.identify.uncertainty import ParameterInterval
@@ -126,10 +127,10 @@ def identifiable_table(intervals: list[ParameterInterval]) -> dict:
         out.setdefault(iv.name, {})[iv.parameter] = {
             "identifiable": iv.identifiable, "reason": iv.reason, "interval": iv.interval,
             "statistical_interval": iv.statistical_interval, "discretisation": iv.discretisation,
-            "search_box": iv.search_box, "best": iv.best, "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
-                                          "significant_z": iv.significant_z,
-                                          "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z}
-                                                    for v, d, se, z in iv.slice]}}
+            "search_box": iv.search_box, "best": iv.best,
+            "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
+                         "significant_z": iv.significant_z,
+                         "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z} for v, d, se, z in iv.slice]}}
     return out
 
 
@@ -208,12 +209,9 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         lines.append(f"    {iv.parameter} 90% interval [{iv.interval[0]:.4g}, {iv.interval[1]:.4g}]{unit}: "
                      f"{'identifiable' if iv.identifiable else 'NOT identifiable'} ({iv.reason})")
         if iv.discretisation is not None:
-            d, (lo, hi) = iv.discretisation, iv.statistical_interval
-            move = (f"{d['shift']:+.3g} decades" if iv.parameter == "E" else f"{d['shift']:+.3g}")
-            lines.append(f"      of which the video's noise [{lo:.4g}, {hi:.4g}]{unit}; the discretisation +-"
-                         f"{d['half_width']:.3g}{' decades' if iv.parameter == 'E' else ''} (the optimum on a grid "
-                         f"{d['ratio']:.2f}x coarser: {d['coarse_best']:.4g}{unit}, {move}"
-                         f"{', or beyond' if d['lower_bound'] else ''})")
+            lo, hi = iv.statistical_interval
+            lines.append(f"      of which the video's noise [{lo:.4g}, {hi:.4g}]{unit}; the discretisation "
+                         f"{discretisation_text(iv.parameter, iv.discretisation)}")
     if re is not None:
         lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; "
                      f"mean {re['re_mean']:.3f}; |E/E_true - 1| mean {re['e_rel_error_mean']:.3f}, "

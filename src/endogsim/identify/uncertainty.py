@@ -27,17 +27,20 @@ per-frame noise this is exact (``tests/test_uncertainty.py`` measures 90% covera
 one-sided normal test of "theta is worse than theta*", gave 97-99.8% there (intervals about twice too
 wide). The identifiability test needs more, z_s = q = 2 z_c (twice the interval's half-width on a quadratic
 loss): with z_c alone a loss of pure noise, independent of theta, passes on both sides about 23% of the
-time, with z_s about 6% (four trials per side; ``tests/test_uncertainty.py``). Frames whose errors are alike (a model error shared by the whole clip) make that
-interval too narrow: ``endogsim bench suite`` reports how often the true value falls inside (coverage).
+time, with z_s about 6% (four trials per side; ``tests/test_uncertainty.py``). Frames whose errors are alike
+(a model error shared by the whole clip) make that interval too narrow: ``endogsim bench suite`` reports how
+often the true value falls inside (coverage).
 
 The discretisation's error is one such shared error: a simulator that is not converged moves the optimum
 itself (docs/IDENTIFICATION.md section 3). :func:`discretisation_error` measures it the way computational
 mechanics does, with Roache's grid convergence index: the optimum along the same slice at a coarser
 discretisation (grid / r, particle spacing x r, substeps / r) moves by epsilon, and the error of this one is
 taken as GCI = F_s |epsilon| / (r^p - 1) (order p = 1: tool and boundary conditions set on grid nodes;
-safety factor F_s = 3, Roache's for a study of two grids whose order is not verified). The reported interval adds it to the statistical one side by side in quadrature,
-as independent errors (ASME V&V 20); the statistical interval is kept beside it, and it alone decides
-whether the video moved a parameter away from its prior.
+safety factor F_s = 3, Roache's for a study of two grids whose order is not verified). The reported
+interval adds it to the statistical one side by side in quadrature, as independent errors (ASME V&V 20);
+the statistical interval is kept beside it, and it alone decides whether the video moved a parameter away
+from its prior. An interval that the discretisation's error stretches over the whole search box makes the
+parameter not identifiable.
 """
 
 from __future__ import annotations
@@ -280,8 +283,8 @@ def discretisation_error(best: float, steps: tuple[float, ...], box: tuple[float
     """The optimum of ``coarse_loss`` along a slice through ``best``, and the grid convergence index it gives.
 
     On each side the walk takes ``steps`` outward from ``best`` (as :func:`walk_slice`, clipped to ``box``)
-    while the coarse loss keeps falling, and stops at the first value that is no lower, at the box's end or at a simulation that
-    fails (:class:`~endogsim.errors.EndoGSimError`). The coarse optimum is the least value evaluated, refined
+    while the coarse loss keeps falling, and stops at the first value that is no lower, at the box's end or
+    at a simulation that fails (:class:`~endogsim.errors.EndoGSimError`). The coarse optimum is the least value evaluated, refined
     by the parabola through it and its two neighbours when it has one on each side.
 
     Args:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -73,6 +73,12 @@ Region = Callable[[np.ndarray], np.ndarray]
 NormalField = Callable[[np.ndarray], np.ndarray]
 
 
+#: What an :class:`Anchor` does to the grid nodes (and particles) in its region.
+AnchorKind = Literal["fixed", "sticky", "slip", "support", "slip_support"]
+#: The kinds that act along a normal (a wall or support stops the velocity component into it).
+NORMAL_KINDS = ("slip", "support", "slip_support")
+
+
 @dataclass
 class Anchor:
     """A boundary condition on a region of the world (an axis-aligned box, or any indicator of world
@@ -103,14 +109,14 @@ class Anchor:
 
     lo: tuple[float, float, float] | None = None
     hi: tuple[float, float, float] | None = None
-    kind: Literal["fixed", "sticky", "slip", "support", "slip_support"] = "fixed"
+    kind: AnchorKind = "fixed"
     normal: tuple[float, float, float] | NormalField = (0.0, 0.0, 1.0)
     particle_mask: torch.Tensor | np.ndarray | None = None
     region: Region | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("fixed", "sticky", "slip", "support", "slip_support"):
-            raise SimulationError(f"Anchor.kind {self.kind!r} is not fixed|sticky|slip|support|slip_support")
+        if self.kind not in get_args(AnchorKind):
+            raise SimulationError(f"Anchor.kind {self.kind!r} is not {'|'.join(get_args(AnchorKind))}")
         if (self.lo is None) != (self.hi is None):
             raise SimulationError("Anchor needs both lo and hi (or neither)")
         if self.lo is not None and self.region is not None:
@@ -119,7 +125,7 @@ class Anchor:
             raise SimulationError("Anchor needs a box (lo, hi), a region or a particle_mask")
         if self.particle_mask is not None and self.kind != "fixed":
             raise SimulationError("Anchor.particle_mask is only meaningful for kind 'fixed'")
-        if self.kind in ("slip", "support", "slip_support") and not callable(self.normal) and float(np.linalg.norm(self.normal)) < 1e-9:
+        if self.kind in NORMAL_KINDS and not callable(self.normal) and float(np.linalg.norm(self.normal)) < 1e-9:
             raise SimulationError(f"Anchor.normal must be non-zero for a {self.kind} anchor")
 
     def contains(self, points: np.ndarray) -> np.ndarray:

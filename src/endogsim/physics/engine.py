@@ -22,7 +22,7 @@ import warp as wp
 
 from endogsim.errors import SimulationError
 from endogsim.physics import kernels as K
-from endogsim.physics.config import MPMConfig, Scenario
+from endogsim.physics.config import NORMAL_KINDS, MPMConfig, Scenario
 from endogsim.physics.particles import Particles
 from endogsim.warp_runtime import init_warp
 
@@ -257,7 +257,7 @@ class MPMEngine:
                 inside = a.contains(nodes) & (k_plane != K.BC_STICKY)
                 if inside.any():
                     k_plane[inside] = code[a.kind]
-                    if a.kind in ("slip", "support", "slip_support"):
+                    if a.kind in NORMAL_KINDS:
                         n_plane[inside] = a.normals(nodes[inside])
         return kinds, normals
 
