@@ -165,6 +165,26 @@ def test_a_moving_camera_renders_each_frame_in_its_own_view(tiny_scene):
     torch.testing.assert_close(plain.project(m), Camera(p.camera.K, p.camera.width, p.camera.height, V[2]).project(pts))
 
 
+def test_an_instrument_the_video_does_not_show_is_not_drawn(tiny_scene):
+    from endogsim.scene.forward import render_sequence
+
+    p = tiny_scene
+    tid = p.spec.scenario.tools[0].object_id
+    res = p.simulator().simulate(_truth(p))
+    cam = p.camera.scaled(0.25)
+    T = p.num_frames
+    drawn = render_sequence(p, res.positions, res.F, cam, frames=[1, 2])
+    seen = torch.ones(T, dtype=torch.bool)
+    seen[2] = False  # out of view in frame 2: its pose is held there, but the video shows tissue
+    gap = render_sequence(replace(p, tool_visible={tid: seen}), res.positions, res.F, cam, frames=[1, 2])
+    never = render_sequence(replace(p, tool_visible={tid: torch.zeros(T, dtype=torch.bool)}), res.positions, res.F,
+                            cam, frames=[1, 2])
+    assert float((drawn.alpha[1] - never.alpha[1]).abs().max()) > 0.5  # the probe is in view and drawn
+    torch.testing.assert_close(gap.rgb[0], drawn.rgb[0])  # frame 1: shown as before
+    torch.testing.assert_close(gap.rgb[1], never.rgb[1])  # frame 2: the tissue alone
+    torch.testing.assert_close(gap.alpha[1], never.alpha[1])
+
+
 def test_the_track_term_compares_projected_trajectories():
     from endogsim.identify.loss import Observations, track_term
     from endogsim.scene.forward import Rendered
@@ -269,6 +289,7 @@ def test_no_tissue_lies_inside_a_collider_at_frame_0(validated):
     x = p.particles.x.double().numpy()
     tools = p.spec.scenario.tools
     assert len(tools) == 1  # one probe, one collider
+    assert tools[0].visible == [True] * p.num_frames and p.tool_visible == {}  # seen in every frame
     for t in tools:
         assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius
     assert json.loads((run / "scene" / "scene.json").read_text())["colliders"][0]["object_id"] == tools[0].object_id
@@ -291,6 +312,7 @@ def test_real_clips_give_one_collider_per_instrument(tmp_path, clip, instruments
     p = load_sim_scene(scene)
     tools = p.spec.scenario.tools
     assert len(tools) == instruments and len({t.object_id for t in tools}) == instruments
+    assert all(t.visible is not None and len(t.visible) == p.num_frames for t in tools)
     x = p.particles.x.double().numpy()
     for t in tools:
         assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius

@@ -406,8 +406,14 @@ def scene_from_reconstruction(
             klass = next((o["class"] for o in objects if o["id"] == oid), "")
             grasps = scenario.grasping == "all" or (scenario.grasping == "graspers" and "grasp" in str(klass))
             contact = "grasp" if grasps else "sticky"
+        # Where the video does not show the instrument (out of view, occluded), its pose is held and it is
+        # not drawn; the benchmark's ground truth draws its tools in every frame.
+        visible = None
+        if gt is None and masks is not None:
+            visible = [bool((m == oid).any()) for m in masks[:T]]
         tools.append({"object_id": oid, "tip": np.asarray(tip).tolist(), "end": np.asarray(end).tolist(),
-                      "radius": float(radius), "transforms": transforms.tolist(), "contact": contact})
+                      "radius": float(radius), "transforms": transforms.tolist(), "contact": contact,
+                      "visible": visible})
     doc["scenario"]["tools"] = tools
     doc["colliders"] = [f.to_json() for f in fits]
     if gt is None:

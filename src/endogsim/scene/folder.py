@@ -66,6 +66,8 @@ class SimScene:
         mpm: the identification discretisation (grid, substeps, dt).
         binding: how each Gaussian follows its k nearest particles.
         tool_transforms: {object id: [T, 4, 4] world rigid transforms per frame} for rigid Gaussians.
+        tool_visible: {object id: [T] bool} the frames where the video shows the instrument, for the
+            instruments that are not seen in every frame (``ToolCapsule.visible``); render hides it elsewhere.
         gt_flow: [T-1, H, W, 2] ground-truth flow (pixels) or None; gt_flow_valid: [T-1, H, W] bool or None.
         viewmats: [T, 4, 4] world -> camera per frame (a moving endoscope) or None (a still camera,
             ``camera.viewmat``).
@@ -89,6 +91,7 @@ class SimScene:
     gt_flow_valid: np.ndarray | None = None
     viewmats: torch.Tensor | None = None
     tracks: TissueTracks | None = None
+    tool_visible: dict[int, torch.Tensor] = field(default_factory=dict)
     _simulator: Simulator | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
@@ -183,6 +186,10 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         if tf.shape[0] < T:
             raise DataError(f"{folder}: tool {tool.object_id} has {tf.shape[0]} transforms for {T} frames")
         tool_tf[tool.object_id] = tf
+        if tool.visible is not None and len(tool.visible) < T:
+            raise DataError(f"{folder}: tool {tool.object_id} has visibility for {len(tool.visible)} frames, not {T}")
+    tool_visible = {tool.object_id: torch.tensor(tool.visible[:T]) for tool in sc.tools
+                    if tool.visible is not None and not all(tool.visible[:T])}
     colliders = tool_colliders(sc.tools, particles, ~filled.pinned, dx, tool_tf)
     scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=filled.anchors(),
                         forces=scenario_forces(spec, particles), colliders=colliders,
@@ -204,7 +211,7 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     return SimScene(folder=folder, spec=spec, labels=labels, frames=obs, object_masks=masks, camera=camera,
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
                            binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
-                           viewmats=viewmats, tracks=tracks)
+                           viewmats=viewmats, tracks=tracks, tool_visible=tool_visible)
 
 
 def coarsened(scene: SimScene, factor: float) -> SimScene:

@@ -26,7 +26,7 @@ from endogsim.gaussians.render import rasterize
 from endogsim.physics import GradMode, ObjectMaterials, drive_gaussians
 from endogsim.scene.folder import SimScene
 
-__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "in_view", "render_sequence"]
+__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "frame_opacities", "in_view", "render_sequence"]
 
 
 @dataclass
@@ -75,6 +75,16 @@ def frame_gaussians(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     return means, covs
 
 
+def frame_opacities(problem: SimScene, opacities: torch.Tensor, t: int) -> torch.Tensor:
+    """Opacities [N] of every Gaussian at frame t: those of an instrument the video does not show at t
+    (``SimScene.tool_visible``) are 0, so that a tool that left the view is not drawn at its held pose."""
+    hidden = [oid for oid, seen in problem.tool_visible.items() if not bool(seen[t])]
+    if not hidden:
+        return opacities
+    keep = ~torch.isin(problem.gaussians.object_ids, torch.tensor(hidden, dtype=problem.gaussians.object_ids.dtype))
+    return opacities * keep.to(opacities)
+
+
 def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t: int):
     """Means [N, 3] (and covariances [N, 3, 3], or None) of frame t in camera t's coordinates (unchanged for
     a still camera, whose world is its camera frame)."""
@@ -107,12 +117,13 @@ def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     rgbs, flows, alphas, tracks = [], [], [], []
     for t in frames:
         m, c = states[t]
+        opac_t = frame_opacities(problem, opac, t)
         if t + 1 < T:
-            r = render_with_flow(m, opac, colors, view, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
+            r = render_with_flow(m, opac_t, colors, view, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
                                  backend=backend)
             flows.append(r.flow)
         else:
-            r = rasterize(m, opac, colors, view, covars=c, backend=backend)
+            r = rasterize(m, opac_t, colors, view, covars=c, backend=backend)
         rgbs.append(r.rgb)
         alphas.append(r.alpha)
         if problem.tracks is not None:

@@ -63,7 +63,9 @@ class ToolCapsule:
     ``transforms`` [T][4][4] rigid world transforms per frame (frame 0 = identity). ``contact``: "sticky"
     (the capsule pushes the tissue it touches) or "grasp" (a grasper: besides pushing, its jaws hold the
     tissue within :data:`endogsim.physics.particles.GRASP_MARGIN` of its tip sphere at frame 0, which then
-    moves rigidly with it)."""
+    moves rigidly with it). ``visible`` [T] bool: the frames where the video shows the instrument (None: every
+    frame); where it does not (it left the view, or is occluded), its collider keeps its held pose but its
+    Gaussians are not rendered, as in the video."""
 
     object_id: int
     tip: list[float]
@@ -71,10 +73,13 @@ class ToolCapsule:
     radius: float
     transforms: list[list[list[float]]]
     contact: Literal["sticky", "grasp"] = "sticky"
+    visible: list[bool] | None = None
 
     def __post_init__(self) -> None:
         if self.contact not in ("sticky", "grasp"):
             raise ValueError(f"tool {self.object_id}: contact {self.contact!r} is not sticky|grasp")
+        if self.visible is not None and not all(isinstance(v, bool) for v in self.visible):
+            raise ValueError(f"tool {self.object_id}: visible must be a list of true/false per frame")
 
     def matrices(self) -> np.ndarray:
         """[T, 4, 4] float64 world transforms per frame."""
