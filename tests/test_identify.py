@@ -172,7 +172,7 @@ def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
     assert res_b.field[1].E == pytest.approx(res_a.field[1].E, rel=1e-6)
     assert res_b.field[1].nu == pytest.approx(res_a.field[1].nu, rel=1e-6)
     # Other settings than the checkpoint's are refused, not silently mixed.
-    with pytest.raises(DataError, match="other settings"):
+    with pytest.raises(DataError, match="other settings \\(option loss\\)"):  # named, so a user knows which
         identify(problem, init, fast_config(loss="render"), run_dir=tmp_path)
 
 

@@ -259,6 +259,17 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     assert plain == pytest.approx(res["baselines"]["prior"], rel=1e-6)
 
 
+def test_validate_refuses_the_reconstruction_of_another_clip(validated, tmp_path):
+    from endogsim.pipeline.validate import check_reconstruction_of
+    from endogsim.synth import synthesize
+
+    _, run, _ = validated
+    check_reconstruction_of(run / "recon", run.parent / "data")  # its own clip: fine
+    other = synthesize("tiny", tmp_path / "other", seed=1, frames=6)
+    with pytest.raises(DataError, match="is not a reconstruction of .*other: .* gives other frames"):
+        check_reconstruction_of(run / "recon", other)
+
+
 def test_a_prediction_beats_a_baseline_only_beyond_the_frame_to_frame_noise():
     from endogsim.pipeline.validate import compare_to
 

@@ -608,3 +608,79 @@ def test_a_sigkilled_identify_resumes_to_the_same_result_and_leaves_no_lock(tiny
     assert not (tmp_path / ".cut.lock").exists()
     got = strict_json(tmp_path / "cut" / "metrics.json")
     assert got["materials"] == strict_json(tmp_path / "ref" / "metrics.json")["materials"] == ref["materials"]
+
+
+# ------------------------------------------------------------------------------------------------------ stop 29 audit
+def test_the_working_folder_is_never_replaced_or_written_into(tiny, tmp_path, monkeypatch):
+    from endogsim.io.atomic import atomic_folder
+
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "mine.txt").write_text("the user's own file")
+    monkeypatch.chdir(work)
+    for target in (".", "", "..", str(work)):
+        with pytest.raises(OSError, match="the working folder"):
+            with atomic_folder(target):
+                pass
+    for args in (["synth", "tiny", "--out", "", "--frames", 3], ["identify", tiny, "--out", ".", "--iters", 0]):
+        r = cli(*args)
+        assert r.exit_code == 2 and "name a folder to write" in r.output, r.output
+    assert sorted(p.name for p in work.iterdir()) == ["mine.txt"]
+
+
+def test_simulate_finds_the_identified_materials_of_either_run_layout(tiny, tmp_path):
+    import shutil
+
+    from endogsim.pipeline.simulate import resolve_scene
+
+    run = tmp_path / "run"  # `endogsim run`: RUN/scene/ and RUN/identify/materials_identified.json
+    shutil.copytree(tiny, run / "scene")
+    (run / "identify").mkdir()
+    (run / "identify" / "materials_identified.json").write_text("{}")
+    assert resolve_scene(run) == (run / "scene", run / "identify" / "materials_identified.json")
+    ident = tmp_path / "ident"  # `endogsim identify`: metrics.json names the scene folder, maybe relatively
+    ident.mkdir()
+    (ident / "materials_identified.json").write_text("{}")
+    (ident / "metrics.json").write_text(json.dumps({"folder": "run/scene"}))
+    assert resolve_scene(ident) == (tmp_path / "run/scene", ident / "materials_identified.json")
+    (ident / "metrics.json").write_text('{"folder": "run/sce')
+    with pytest.raises(DataError, match="metrics.json: not a JSON object"):
+        resolve_scene(ident)
+
+
+@pytest.mark.parametrize("option, needle", [
+    ({"iters": "100"}, "iters = '100' must be an integer"),
+    ({"deformation": {"resolution": [0, 0, 0]}}, "deformation.resolution \\[0, 0, 0\\] must be 3 integers >= 2"),
+    ({"deformation": {"multires": [0]}}, "deformation.multires \\[0\\] must be integers >= 1"),
+    ({"deformation": {"resolution": 5}}, "deformation.resolution = 5 must be a list of integers"),
+    ({"flow": "dis"}, "flow = 'dis' must be a table"),
+    ({"checkpoint_every": 0}, "checkpoint_every 0 must be >= 1"),
+    ({"lr_means": -1.0}, "lr_means -1.0 must be > 0"),
+    ({"sh_degree": -1}, "sh_degree -1 must be 0, 1, 2 or 3"),
+])
+def test_reconstruction_config_files_are_checked_before_anything_runs(tmp_path, option, needle):
+    from endogsim.recon.config import ReconConfig
+
+    # resolution [0, 0, 0] and multires [0] crashed the HexPlane kernel with a segfault
+    with pytest.raises(DataError, match=f"cfg.json: {needle}"):
+        ReconConfig.from_dict(option, source="cfg.json")
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda d: next(b for b in d["scenario"]["boundary_conditions"] if b["type"] == "anchors").update(object="livr"),
+     "names object 'livr', which the scene"),
+    (lambda d: d["scenario"]["boundary_conditions"].append({"type": "magic"}), "type is one of anchors, box_walls, static"),
+    (lambda d: d["scenario"]["tools"][0].update(radius=-0.003), "tool 2 radius \\(m\\) = -0.003 must be a number > 0"),
+    (lambda d: d["scenario"]["tools"][0].update(tip=[0.0, 0.0]), "tool 2 tip \\(m\\) = .* must be 3 finite"),
+    (lambda d: d["scenario"]["identification"].update(grid=38.5), "identification.grid = 38.5 must be an integer"),
+    (lambda d: d["scenario"].update(box_size="big"), "box_size \\(m\\) = 'big' must be a number"),
+    (lambda d: d["camera"].update(K=[[1, 0], [0, 1]]), "camera.K \\(pixels\\) = .* must be 3 x 3"),
+    (lambda d: d["objects"][1].update(id=d["objects"][0]["id"]), "object ids .* must be distinct integers"),
+])
+def test_scene_geometry_is_checked_on_load(tiny, tmp_path, edit, needle):
+    from endogsim.scene.schema import load_scene_spec
+
+    bad = scene_copy(tiny, tmp_path / "bad", edit)
+    with pytest.raises(DataError, match=needle):
+        load_scene_spec(bad)
+    one_line_error(cli("simulate", bad, "-i", "poke", "--out", tmp_path / "sim", "--frames", 2), "scene.json")

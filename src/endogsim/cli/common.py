@@ -6,6 +6,7 @@ import functools
 import os
 import warnings
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
@@ -49,6 +50,16 @@ def user_errors(func: F) -> F:
             _error(f"{exc.filename}: {exc.strerror or type(exc).__name__}")
 
     return wrapper  # type: ignore[return-value]
+
+
+def output_folder(value: Path | None) -> Path | None:
+    """``--out`` callback: the working folder itself (``.``, or an empty ``--out ""``, which reads the same,
+    as from an unset shell variable) is refused: a run folder's files would land among the user's own, and a
+    replaced folder would take them with it."""
+    if value is not None and str(value) in ("", "."):
+        raise typer.BadParameter("name a folder to write (got the working folder '.': an empty --out \"\" reads "
+                                 "the same)")
+    return value
 
 
 def _error(message: str) -> None:

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import user_errors
+from endogsim.cli.common import output_folder, user_errors
 
 
 def _stage_printer():
@@ -35,7 +35,8 @@ def register(app: typer.Typer) -> None:
     @app.command("demo")
     @user_errors
     def demo_cmd(
-        out: Path = typer.Option(Path("demo"), "--out", "-o", help="Output folder (re-run to resume)."),
+        out: Path = typer.Option(Path("demo"), "--out", "-o", callback=output_folder,
+                                 help="Output folder (re-run to resume)."),
         scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the synthesized scene, the reconstruction and the "
                                  "identification (same seed and thread count: same results, at any speed)."),
@@ -101,7 +102,8 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def run_cmd(
         data: Path = typer.Argument(..., help="Dataset folder (EndoNeRF, CholecSeg8K, `endogsim synth` output) or video."),
-        out: Path = typer.Option(..., "--out", "-o", help="Run folder (re-run to resume the stages not yet done)."),
+        out: Path = typer.Option(..., "--out", "-o", callback=output_folder,
+                                 help="Run folder (re-run to resume the stages not yet done)."),
         materials_backend: str = typer.Option("prior", "--materials-backend",
                                               help="manual | prior | mllm | replay | a material JSON file."),
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth scene folder (benchmark protocol)."),
@@ -134,7 +136,8 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def validate_cmd(
         data: Path = typer.Argument(..., help="Dataset folder (EndoNeRF, CholecSeg8K, `endogsim synth` output) or video."),
-        out: Path = typer.Option(..., "--out", "-o", help="Run folder (its reconstruction and scenario are reused)."),
+        out: Path = typer.Option(..., "--out", "-o", callback=output_folder,
+                                 help="Run folder (its reconstruction and scenario are reused)."),
         train_fraction: float = typer.Option(0.67, "--train-fraction", help="Share of the frames to calibrate on."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the result JSON here."),
         materials_backend: str = typer.Option("prior", "--materials-backend",
@@ -173,8 +176,10 @@ def register(app: typer.Typer) -> None:
         print_table(f"Held-out frames {res['train_frames']}..{res['train_frames'] + res['test_frames'] - 1} of "
                     f"{data.name} (calibrated on the first {res['train_frames']})", cols, rows)
         for name, params in res["identifiable"].items():
-            for par, v in params.items():
-                console.print(f"{name} {par}: {v['best']:.4g} in [{v['interval'][0]:.4g}, {v['interval'][1]:.4g}] "
+            for par, v in params.items():  # the value kept (a prior where the video says nothing), then the optimum
+                kept = res["materials"].get(name, {}).get(par, v["best"])
+                console.print(f"{name} {par}: {kept:.4g} (loss least at {v['best']:.4g}), 90% interval "
+                              f"[{v['interval'][0]:.4g}, {v['interval'][1]:.4g}] "
                               f"({'identifiable' if v['identifiable'] else 'NOT identifiable'}: {v['reason']})")
         console.print(f"{res['seconds']:.0f} s; report: {out / 'report.html'}")
         if json_out is not None:

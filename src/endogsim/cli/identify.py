@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import user_errors
+from endogsim.cli.common import output_folder, user_errors
 from endogsim.identify.config import IdentifyConfig
 from endogsim.priors.flow import FlowConfig
 
@@ -21,7 +21,8 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def identify_cmd(
         scene: Path = typer.Argument(..., help="Scene folder with scene.json (e.g. from `endogsim synth`)."),
-        out: Path = typer.Option(..., "--out", "-o", help="Run folder (outputs and checkpoint; resumes if present)."),
+        out: Path = typer.Option(..., "--out", "-o", callback=output_folder,
+                                 help="Run folder (outputs and checkpoint; resumes if present)."),
         init: str = typer.Option("prior", "--init", help="manual | prior | mllm | replay | a materials JSON file."),
         loss: str = typer.Option(_DEFAULT.loss, "--loss", help="joint (render + 0.1 flow) | joint_track (+ 0.1 "
                                  "track) | render | flow | track."),

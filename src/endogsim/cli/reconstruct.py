@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import user_errors
+from endogsim.cli.common import output_folder, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -17,7 +17,8 @@ def register(app: typer.Typer) -> None:
     @user_errors
     def reconstruct_cmd(
         data: Path = typer.Argument(..., help="EndoNeRF / CholecSeg8K / procedural folder, or a video file."),
-        out: Path = typer.Option(..., "--out", "-o", help="Run folder (outputs, checkpoint; resumes if present)."),
+        out: Path = typer.Option(..., "--out", "-o", callback=output_folder,
+                                 help="Run folder (outputs, checkpoint; resumes if present)."),
         config: Optional[Path] = typer.Option(None, "--config", help="JSON or TOML file of ReconConfig options."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale",
                                                          help="Training image scale (default 0.5 on CPU, 1 on GPU)."),

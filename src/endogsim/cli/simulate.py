@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import user_errors
+from endogsim.cli.common import output_folder, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -22,7 +22,8 @@ def register(app: typer.Typer) -> None:
         materials: Optional[str] = typer.Option(None, "--materials", "-m",
                                                 help="Material JSON file, 'truth' (scene.json), or an initialiser "
                                                      "(prior, manual); default: the run's identified materials, else prior."),
-        out: Path = typer.Option(..., "--out", "-o", help="Output folder (video, frames, PLY sequence, summary.json)."),
+        out: Path = typer.Option(..., "--out", "-o", callback=output_folder,
+                                 help="Output folder (video, frames, PLY sequence, summary.json)."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Override the interaction's frame count."),
         fps: float = typer.Option(10.0, "--fps", help="Video frame rate."),
         no_ply: bool = typer.Option(False, "--no-ply", help="Skip the PLY sequence."),

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import user_errors
+from endogsim.cli.common import output_folder, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -18,7 +18,8 @@ def register(app: typer.Typer) -> None:
     def synth(
         scene: Optional[str] = typer.Argument(None, help="Suite scene: tiny, press, pull, two_tissues, stomach, "
                                               "gallbladder (see --list). With --from: a name for the scene."),
-        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (EndoNeRF layout + ground truth)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", callback=output_folder,
+                                 help="Output folder (EndoNeRF layout + ground truth)."),
         seed: int = typer.Option(0, "--seed", help="Seed for textures and material perturbations."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Number of frames (default: the scene's)."),
         scale: Optional[float] = typer.Option(None, "--scale",

@@ -179,6 +179,17 @@ def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig) -
             "init": init.to_json()["objects"]}
 
 
+def _signature_change(old: dict | None, new: dict) -> str:
+    """What differs between two checkpoint signatures, named for the user (a moved scene folder is one)."""
+    old = old or {}
+    keys = [k for k in new if k != "config" and old.get(k) != new[k]]
+    keys += [f"option {k}" for k in sorted(set(old.get("config", {})) | set(new["config"]))
+             if old.get("config", {}).get(k) != new["config"].get(k)]
+    if old.get("scene") != new["scene"]:
+        keys[keys.index("scene")] = f"scene folder {old.get('scene')} -> {new['scene']}"
+    return ", ".join(keys) or "unknown"
+
+
 def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
     """Observed flow (cached in ``run_dir``) and the observations at the rendering scale, plus the camera."""
     cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
@@ -277,8 +288,10 @@ def identify(
     if ckpt_path is not None and ckpt_path.is_file() and resume:
         ck = torch.load(ckpt_path, weights_only=False)
         if ck.get("version") != _CKPT_VERSION or ck.get("signature") != sig:
-            raise DataError(f"{ckpt_path} was written by a run with other settings (scene, frames, loss, grad mode, "
-                            "init or options); use --fresh to start over or choose another --out")
+            what = (_signature_change(ck.get("signature"), sig) if ck.get("version") == _CKPT_VERSION
+                    else "an older version")
+            raise DataError(f"{ckpt_path} was written by a run with other settings ({what}); use --fresh to start "
+                            "over or choose another --out")
         with torch.no_grad():
             params.log10_E.copy_(ck["log10_E"])
             params.nu_raw.copy_(ck["nu_raw"])

@@ -162,7 +162,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {
-        "scene": problem.spec.name, "folder": str(problem.folder), "init": init_name,
+        "scene": problem.spec.name, "folder": str(Path(problem.folder).resolve()), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "frame_stride": stride,  # the one used (the config's None: automatic)
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,

@@ -67,8 +67,15 @@ def atomic_folder(path: str | os.PathLike, replace: bool = True) -> Iterator[Pat
     Args:
         path: destination folder.
         replace: remove an existing ``path`` before the rename (else the rename fails if it exists).
+    Raises:
+        OSError naming ``path`` when it is the working folder or holds it (``"."``, ``""``, ``".."``): replacing
+        it would delete the folder the user is working in.
     """
     path = Path(path)
+    here = Path.cwd().resolve()
+    if path.resolve() in (here, *here.parents):
+        raise OSError(errno.EINVAL, "the working folder or one that holds it, which would be replaced; name a new "
+                                    "folder to write", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.tmp"))
     try:

@@ -33,21 +33,29 @@ __all__ = ["resolve_scene", "surface_point", "build_interaction", "simulate_inte
 def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
     """The scene folder and the default materials file for a scene folder or a run folder.
 
-    A scene folder has ``scene.json`` (no default materials). A run folder (``endogsim identify``/``run``)
-    has ``materials_identified.json`` and either a ``scene/`` subfolder with ``scene.json`` or a
-    ``metrics.json`` whose ``folder`` names the scene.
+    A scene folder has ``scene.json`` (no default materials). A run folder has the identified materials
+    (``materials_identified.json`` of ``endogsim identify``, or ``identify/materials_identified.json`` of
+    ``endogsim run``) and either a ``scene/`` subfolder with ``scene.json`` or a ``metrics.json`` whose
+    ``folder`` names the scene (a relative name is also looked up beside the run folder).
     """
     p = Path(path)
     if (p / "scene.json").is_file():
         return p, None
-    mats = p / "materials_identified.json"
+    mats = next((m for m in (p / "materials_identified.json", p / "identify" / "materials_identified.json")
+                 if m.is_file()), None)
     if (p / "scene" / "scene.json").is_file():
-        return p / "scene", mats if mats.is_file() else None
+        return p / "scene", mats
     if (p / "metrics.json").is_file():
-        folder = Path(json.loads((p / "metrics.json").read_text()).get("folder", ""))
-        if (folder / "scene.json").is_file():
-            return folder, mats if mats.is_file() else None
-        raise DataError(f"{p}/metrics.json names scene folder {str(folder)!r}, which has no scene.json")
+        try:
+            named = json.loads((p / "metrics.json").read_text()).get("folder", "")
+        except (ValueError, AttributeError) as exc:
+            raise DataError(f"{p / 'metrics.json'}: not a JSON object ({exc}); re-run the identification") from exc
+        if not isinstance(named, str):
+            raise DataError(f"{p / 'metrics.json'}: 'folder' is {named!r}, not the scene folder's path")
+        for folder in (Path(named), p.parent / named):
+            if named and (folder / "scene.json").is_file():
+                return folder, mats
+        raise DataError(f"{p}/metrics.json names scene folder {named!r}, which has no scene.json")
     raise DataError(f"{p}: neither a scene folder (scene.json) nor a run folder (metrics.json / scene/)")
 
 

@@ -173,6 +173,33 @@ def _reconstruction_renders(recon_dir: Path, camera, frames: list[int], T: int) 
     return np.stack(rgbs), np.stack(flows) if flows else np.zeros((0, view.height, view.width, 2), np.float32)
 
 
+def check_reconstruction_of(recon_dir: Path, data: Path) -> None:
+    """Refuse a reconstruction (``--recon``) made from frames other than ``data``'s: its provenance record
+    holds the hash of the frames it used, read again here at its resolution and frame count. A scene built
+    from another clip's Gaussians would be validated against this clip's frames without a word."""
+    import json
+
+    from endogsim.io import load_scene
+    from endogsim.io.runfolder import PROVENANCE, check_provenance, provenance
+
+    if not (recon_dir / PROVENANCE).is_file():
+        if not (recon_dir / "deformation.pt").is_file():
+            raise DataError(f"{recon_dir}: not an `endogsim reconstruct` run folder (no deformation.pt)")
+        check_provenance(recon_dir, {"data": str(data)})  # an older run: continued with a warning
+        return
+    try:
+        cfg = json.loads((recon_dir / PROVENANCE).read_text()).get("config") or {}
+        scale, max_frames = float(cfg.get("resolution_scale", 0.5)), cfg.get("max_frames")
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise DataError(f"{recon_dir / PROVENANCE}: unreadable ({exc})") from None
+    scene = load_scene(data, downscale=1.0 / scale, max_frames=max_frames)
+    try:
+        check_provenance(recon_dir, provenance(data, scene.frames, cfg))
+    except DataError as exc:
+        why = str(exc).split(": use")[0]
+        raise DataError(f"--recon {recon_dir} is not a reconstruction of {data}: {why}") from None
+
+
 def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | None = None, *,
                  on_stage=None, log=print) -> dict:
     """Reconstruct (or reuse), calibrate on the first frames, predict the rest; returns validate.json's content.
@@ -202,6 +229,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         recon_dir = out / "recon"
     else:
         recon_dir = Path(cfg.recon_run)
+        check_reconstruction_of(recon_dir, data)
     with run_folder(out, "validate"):
         if cfg.recon_run is not None:
             from endogsim.pipeline.scene_from_recon import scene_from_reconstruction

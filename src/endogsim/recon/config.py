@@ -21,7 +21,9 @@ every 3rd pixel with small initial footprints, point tracks and a track warm-up,
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, fields
+import math
+import numbers
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -199,6 +201,26 @@ class ReconConfig:
             self.flow = FlowConfig(**self.flow)
         if isinstance(self.deformation, dict):
             self.deformation = DeformationConfig(**self.deformation)
+        if not isinstance(self.flow, FlowConfig) or not isinstance(self.flow.method, str):
+            raise DataError(f"flow {self.flow!r} must be a table such as {{\"method\": \"dis\"}}")
+        if not isinstance(self.deformation, DeformationConfig):
+            raise DataError(f"deformation {self.deformation!r} must be a table of deformation options")
+        check_typed_fields(self)
+        for name in ("checkpoint_every", "densify_every", "track_batch", "tool_every", "max_gaussians"):
+            if getattr(self, name) < 1:
+                raise DataError(f"{name} {getattr(self, name)} must be >= 1")
+        for name in ("eval_every", "track_warmup_iters", "seed"):
+            if getattr(self, name) < 0:
+                raise DataError(f"{name} {getattr(self, name)} must be >= 0")
+        for f in fields(self):
+            if f.name.startswith("lr_") and getattr(self, f.name) <= 0:
+                raise DataError(f"{f.name} {getattr(self, f.name)} must be > 0")
+            if f.name.startswith("lambda_") and getattr(self, f.name) < 0:
+                raise DataError(f"{f.name} {getattr(self, f.name)} must be >= 0")
+        if not 0 <= self.sh_degree <= 3:
+            raise DataError(f"sh_degree {self.sh_degree} must be 0, 1, 2 or 3")
+        if self.max_frames is not None and self.max_frames < 2:
+            raise DataError(f"max_frames {self.max_frames} must be >= 2 (or None: all)")
         if self.depth_method != "auto":
             DEPTH_BACKENDS.get(self.depth_method)
         if self.seg_method != "auto":
@@ -234,6 +256,9 @@ class ReconConfig:
         unknown = sorted(set(data) - names)
         if unknown:
             raise DataError(f"{source}: unknown reconstruction option(s) {unknown}")
+        for key in ("deformation", "flow"):
+            if not isinstance(data.get(key, {}), dict):
+                raise DataError(f"{source}: {key} = {data[key]!r} must be a table of {key} options")
         values = {k: v for k, v in data.items() if k not in ("deformation", "flow")}
         flow = {**asdict(cfg.flow), **data.get("flow", {})}
         deform = asdict(cfg.deformation)
@@ -243,12 +268,47 @@ class ReconConfig:
             if bad:
                 raise DataError(f"{source}: unknown deformation option(s) {bad}")
             deform.update(data["deformation"])
-        deform["resolution"] = tuple(deform["resolution"])
-        deform["multires"] = tuple(deform["multires"])
+        for key in ("resolution", "multires"):
+            if not isinstance(deform[key], (list, tuple)):
+                raise DataError(f"{source}: deformation.{key} = {deform[key]!r} must be a list of integers")
+            deform[key] = tuple(deform[key])
         merged = {**asdict(cfg), **values}
-        merged["deformation"] = DeformationConfig(**deform)
-        merged["flow"] = FlowConfig(**flow)
-        return ReconConfig(**merged)
+        try:
+            merged["deformation"] = DeformationConfig(**deform)
+            merged["flow"] = FlowConfig(**flow)
+            return ReconConfig(**merged)
+        except DataError as exc:
+            if str(exc).startswith(f"{source}:"):
+                raise
+            raise DataError(f"{source}: {exc}") from None
+
+
+def check_typed_fields(config: object) -> None:
+    """Every field of the dataclass ``config`` holds the kind of value its declared default has (a number
+    where a number goes, an integer where a count goes, true/false for a switch, text for a name), and
+    numbers are finite: a config file's ``"iters": "100"`` is named here, not met deep in a run. Fields
+    whose default is None or made by a factory (nested configs) are not checked here."""
+    for f in fields(config):
+        v, d = getattr(config, f.name), f.default
+        if d is MISSING or d is None:
+            continue
+        if isinstance(d, bool):
+            ok, kind = isinstance(v, bool), "true or false"
+        elif isinstance(d, int):
+            ok, kind = isinstance(v, numbers.Integral) and not isinstance(v, bool), "an integer"
+        elif isinstance(d, float):
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+            kind = "a finite number"
+        elif isinstance(d, str):
+            ok, kind = isinstance(v, str), "text"
+        elif isinstance(d, tuple):
+            ok = isinstance(v, (tuple, list)) and all(isinstance(x, numbers.Integral) and not isinstance(x, bool)
+                                                      for x in v)
+            kind = "a list of integers"
+        else:
+            continue
+        if not ok:
+            raise DataError(f"{f.name} = {v!r} must be {kind}")
 
 
 def default_config(device: str = "cpu") -> ReconConfig:

@@ -51,6 +51,21 @@ class DeformationConfig:
     deform_opacity: bool = False
     deform_color: bool = False
 
+    def __post_init__(self) -> None:
+        from endogsim.errors import DataError
+        from endogsim.recon.config import check_typed_fields
+
+        check_typed_fields(self)
+        if len(self.resolution) != 3 or min(self.resolution) < 2:
+            raise DataError(f"deformation.resolution {list(self.resolution)} must be 3 integers >= 2 (x, y, z)")
+        if not self.multires or min(self.multires) < 1:
+            raise DataError(f"deformation.multires {list(self.multires)} must be integers >= 1, at least one")
+        if self.time_resolution == 1 or self.time_resolution < 0:
+            raise DataError(f"deformation.time_resolution {self.time_resolution} must be >= 2 (or 0: automatic)")
+        for name, least in (("feature_dim", 1), ("width", 1), ("depth", 0)):
+            if getattr(self, name) < least:
+                raise DataError(f"deformation.{name} {getattr(self, name)} must be >= {least}")
+
 
 class _Heads(nn.Module):
     """The decoder heads, each ``ReLU -> Linear(width, width) -> ReLU -> Linear(width, out_k)``.

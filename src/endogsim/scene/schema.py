@@ -12,6 +12,7 @@ checks it: ground-truth materials are possible ones (the checks of
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -271,6 +272,7 @@ def scene_spec_from_json(d: dict[str, Any], where: str | Path = "scene.json") ->
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{p}: malformed scene.json ({exc})") from exc
     _check_materials(spec, p)
+    _check_geometry(spec, p)
     return spec
 
 
@@ -289,6 +291,95 @@ def _check_materials(spec: SceneSpec, path: Path) -> None:
                 o.material_record()
             except MaterialError as exc:
                 raise MaterialError(f"{path}: impossible ground truth: {exc}") from None
+
+
+def _numbers(value: Any, shape: tuple[int, ...], what: str, path: Path) -> np.ndarray:
+    """``value`` as a float array of ``shape`` with finite entries, else a DataError naming ``what``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or not np.isfinite(a).all():
+        dims = " x ".join(str(n) for n in shape) or "one"
+        raise DataError(f"{path}: {what} = {value!r:.80} must be {dims} finite number(s)")
+    return a
+
+
+def _positive(value: Any, what: str, path: Path, integer: bool = False, least: float = 0.0,
+              zero: bool = False) -> None:
+    """``value`` is a finite number (an integer if ``integer``) above ``least`` (or equal to it if ``zero``)."""
+    ok = not isinstance(value, bool) and isinstance(value, int if integer else (int, float))
+    if not ok or not math.isfinite(value) or value < least or (value == least and not zero):
+        kind = "an integer" if integer else "a number"
+        raise DataError(f"{path}: {what} = {value!r} must be {kind} {'>=' if zero else '>'} {least:g}")
+
+
+#: The kinds of ``scenario.boundary_conditions`` entries: anchors and box walls act; "static" records the
+#: objects a scene made from real data keeps still (``synth --from``; they are rigid and never move).
+BOUNDARY_TYPES = ("anchors", "box_walls", "static")
+
+
+def _check_geometry(spec: SceneSpec, path: Path) -> None:
+    """The scenario, tools and camera of ``scene.json`` are numbers of the right shapes and signs, and every
+    boundary condition and force names an object the scene has: a typo would otherwise be simulated as a
+    different experiment without a word (or fail deep inside the simulator)."""
+    sc = spec.scenario
+    ids = [o.id for o in spec.objects]
+    if any(isinstance(i, bool) or not isinstance(i, int) for i in ids) or len(set(ids)) != len(ids):
+        raise DataError(f"{path}: object ids {ids} must be distinct integers")
+    _numbers(sc.box_lo, (3,), "scenario.box_lo", path)
+    _positive(sc.box_size, "scenario.box_size (m)", path)
+    _numbers(sc.gravity, (3,), "scenario.gravity (m/s^2)", path)
+    _positive(sc.frame_dt, "scenario.frame_dt (s)", path)
+    _positive(sc.damping, "scenario.damping (1/s)", path, zero=True)
+    _positive(sc.mass_scaling, "scenario.mass_scaling", path)
+    if isinstance(sc.settle_frames, bool) or not isinstance(sc.settle_frames, int) or sc.settle_frames < 0:
+        raise DataError(f"{path}: scenario.settle_frames = {sc.settle_frames!r} must be an integer >= 0")
+    for name, st in (("ground_truth", sc.ground_truth), ("identification", sc.identification)):
+        _positive(st.grid, f"scenario.{name}.grid", path, integer=True, least=3)
+        _positive(st.substeps, f"scenario.{name}.substeps", path, integer=True)
+        _positive(st.dt, f"scenario.{name}.dt (s)", path)
+        if st.particle_spacing is not None:
+            _positive(st.particle_spacing, f"scenario.{name}.particle_spacing (m)", path)
+    names = {o.name for o in spec.objects} | {"all_tissue"}
+    for b in sc.boundary_conditions:
+        if not isinstance(b, dict) or b.get("type") not in BOUNDARY_TYPES:
+            raise DataError(f"{path}: boundary condition {b!r:.80} must be an object whose type is one of "
+                            f"{', '.join(BOUNDARY_TYPES)}")
+        if b["type"] == "anchors":
+            if b.get("object") not in names:
+                raise DataError(f"{path}: boundary condition {b!r:.80} names object {b.get('object')!r}, which the "
+                                f"scene does not have (one of {', '.join(sorted(names))})")
+            try:
+                border = ObjectBoundary.from_json(b).border
+            except (TypeError, ValueError, KeyError) as exc:
+                raise DataError(f"{path}: boundary condition {b!r:.80}: {exc}") from None
+            _positive(border, "an anchors border (m)", path, zero=True)
+        elif "cells" in b:
+            _positive(b["cells"], "box_walls.cells", path, integer=True)
+    for f in sc.forces:
+        if not isinstance(f, dict) or f.get("type") != "impulse":
+            raise DataError(f"{path}: force {f!r:.80} must be an object of type 'impulse'")
+        if f.get("object") not in names:
+            raise DataError(f"{path}: force {f!r:.80} names object {f.get('object')!r}, which the scene does not have")
+        _numbers(f.get("center"), (3,), "an impulse's center (m)", path)
+        _numbers(f.get("velocity"), (3,), "an impulse's velocity (m/s)", path)
+        _positive(f.get("radius"), "an impulse's radius (m)", path)
+    for t in sc.tools:
+        what = f"tool {t.object_id}"
+        _numbers(t.tip, (3,), f"{what} tip (m)", path)
+        _numbers(t.end, (3,), f"{what} end (m)", path)
+        _positive(t.radius, f"{what} radius (m)", path)
+        _numbers(t.transforms, (len(t.transforms), 4, 4), f"{what} transforms", path)
+    cam = spec.camera
+    K = _numbers(cam.K, (3, 3), "camera.K (pixels)", path)
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DataError(f"{path}: camera.K has focal lengths {K[0, 0]:g}, {K[1, 1]:g} px; they must be > 0")
+    _positive(cam.width, "camera.width (px)", path, integer=True)
+    _positive(cam.height, "camera.height (px)", path, integer=True)
+    _numbers(cam.viewmat, (4, 4), "camera.viewmat", path)
+    if cam.viewmats is not None:
+        _numbers(cam.viewmats, (len(cam.viewmats), 4, 4), "camera.viewmats", path)
 
 
 def _check_files(spec: SceneSpec, path: Path) -> None:
