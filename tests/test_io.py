@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from endogsim.errors import DataError
+from endogsim.errors import DataError, DataWarning
 from endogsim.io import load_scene, write_frames_png, write_video
 from endogsim.io.loaders import load_video
 
@@ -270,6 +270,24 @@ def test_cholec_missing_mask(tmp_path):
     with pytest.raises(DataError, match="watershed mask missing") as e:
         load_scene(d)
     _names_file(e, d / "frame_2_endo_watershed_mask.png")
+
+
+def test_cholec_times_follow_the_frame_numbers(tmp_path):
+    d = tmp_path / "clip"
+    d.mkdir()
+    for i in (561, 562, 564):  # frame 563 left out
+        cv2.imwrite(str(d / f"frame_{i}_endo.png"), np.zeros((H, W, 3), np.uint8))
+        cv2.imwrite(str(d / f"frame_{i}_endo_watershed_mask.png"), np.full((H, W, 3), 21, np.uint8))
+    with pytest.warns(DataWarning, match="frame numbers jump 562 -> 564"):
+        sc = load_scene(d)
+    np.testing.assert_allclose(sc.times, [0.0, 0.04, 0.12])
+
+
+def test_endonerf_focal_length_no_endoscope_has_is_warned(tmp_path):
+    root = make_endonerf(tmp_path / "clip")
+    np.save(root / "poses_bounds.npy", _poses_bounds(focal=1e-6))  # a millionth of a pixel
+    with pytest.warns(DataWarning, match="poses_bounds.npy: focal length 1e-06 px .* outside the 20-160 degrees"):
+        load_scene(root)
 
 
 def test_undecodable_video(tmp_path):

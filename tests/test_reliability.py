@@ -684,3 +684,16 @@ def test_scene_geometry_is_checked_on_load(tiny, tmp_path, edit, needle):
     with pytest.raises(DataError, match=needle):
         load_scene_spec(bad)
     one_line_error(cli("simulate", bad, "-i", "poke", "--out", tmp_path / "sim", "--frames", 2), "scene.json")
+
+
+def test_a_single_frame_and_impossible_options_are_refused_before_any_work(tiny, tmp_path):
+    one = tmp_path / "one"  # a clip of one frame: no motion, nothing to hold out
+    (one / "images").mkdir(parents=True)
+    import shutil
+
+    shutil.copy(tiny / "images" / "frame-000000.color.png", one / "images" / "frame-000000.color.png")
+    one_line_error(cli("reconstruct", one, "--out", tmp_path / "r", "--iters", 5), "1 frame; a 4D reconstruction")
+    one_line_error(cli("identify", tiny, "--out", tmp_path / "i", "--iters", 1, "--device", "tpu"),
+                   "device 'tpu' is not cpu, cuda or cuda:N")
+    one_line_error(cli("identify", tiny, "--out", tmp_path / "i2", "--iters", 1, "--render-scale", 0.01),
+                   "comparing motion needs at least 8 px a side")

@@ -20,7 +20,7 @@ def register(app: typer.Typer) -> None:
                                               "gallbladder (see --list). With --from: a name for the scene."),
         out: Optional[Path] = typer.Option(None, "--out", "-o", callback=output_folder,
                                  help="Output folder (EndoNeRF layout + ground truth)."),
-        seed: int = typer.Option(0, "--seed", help="Seed for textures and material perturbations."),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed for textures and material perturbations."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Number of frames (default: the scene's)."),
         scale: Optional[float] = typer.Option(None, "--scale",
                                               help="Image-size factor (procedural, default 1) or downscale of the "

@@ -250,6 +250,11 @@ def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int
         if (round(H), round(W)) != (h0, w0):
             raise DataError(f"{pb}: poses say {round(W)}x{round(H)} but images are {w0}x{h0}")
         K0 = np.array([[focal, 0, w0 / 2], [0, focal, h0 / 2], [0, 0, 1]], dtype=np.float64)
+        hfov = math.degrees(2 * math.atan(w0 / (2 * focal)))
+        if not 20.0 <= hfov <= 160.0:  # endoscopes see 60-120 degrees; this is a wrong file, not a lens
+            notes.append(f"{pb.name}: focal length {focal:.4g} px at {w0} px width is a {hfov:.3g}-degree horizontal "
+                         "field of view, outside the 20-160 degrees of any endoscope: check the file (sizes and "
+                         "depths follow from it)")
     else:
         K0 = default_K(w0, h0, VIDEO_HFOV_DEG)
         notes.append(f"{NO_POSES_NOTE}: intrinsics assumed (a {VIDEO_HFOV_DEG:g}-degree horizontal field of view, "
@@ -319,10 +324,19 @@ def load_cholecseg8k(folder: str | Path, *, downscale: float = 1.0, max_frames: 
         masks.append(resize(ids, (w, h), nearest=True))
     K = _scale_K(default_K(w0, h0, hfov_deg), w0, h0, w, h)
     rate = fps or CHOLEC_FPS
+    # Times from the frame numbers in the names: a clip with frames left out is not evenly sampled.
+    numbers = np.array([int(_CHOLEC_RE.match(p.name)[1]) for p in paths], dtype=np.float64)
+    notes = []
+    gaps = [(int(a), int(b)) for a, b in zip(numbers[:-1], numbers[1:]) if b - a != 1]
+    if gaps:
+        notes.append(f"{d}: frame numbers jump {', '.join(f'{a} -> {b}' for a, b in gaps[:5])}"
+                     f"{' ...' if len(gaps) > 5 else ''}: times follow the numbers, so the frames are not evenly "
+                     "spaced (simulations take the median frame interval)")
     return Scene(
-        frames=frames, times=np.arange(n, dtype=np.float64) / rate, K=K, depth=None,
+        frames=frames, times=(numbers - numbers[0]) / rate, K=K, depth=None,
         object_masks=np.stack(masks).astype(np.int32), labels=dict(L.CHOLECSEG8K_LABELS),
         downscale=float(downscale), source=str(folder), frame_names=[p.name for p in paths], poses=None,
+        notes=notes,
     )
 
 

@@ -37,8 +37,8 @@ def write_video(frames, path: str | os.PathLike, fps: float = 25.0, quality: int
     import imageio_ffmpeg
 
     path = Path(path)
-    if not fps > 0:
-        raise DataError(f"{path}: fps must be positive, got {fps}")
+    if not 0 < fps <= 1000:
+        raise DataError(f"{path}: fps must lie in (0, 1000], got {fps}")
     f = _to_uint8(frames)
     t, h, w, _ = f.shape
     ph, pw = h % 2, w % 2

@@ -160,10 +160,13 @@ class MaterialField:
         for i, o in enumerate(obj["objects"]):
             try:
                 recs.append(MaterialRecord.model_validate(o))
-            except MaterialError:
-                raise
-            except Exception as exc:  # pydantic ValidationError: name the entry
-                raise MaterialError(f"{where}: objects[{i}] is malformed: {exc}") from None
+            except MaterialError as exc:  # a value the record refuses: name the file and the entry
+                raise MaterialError(f"{where}: objects[{i}]: {exc}") from None
+            except Exception as exc:  # pydantic ValidationError: name the entry, one line per field
+                errors = getattr(exc, "errors", None)
+                what = "; ".join(f"{'.'.join(str(k) for k in e['loc'])}: {e['msg']} (got {e.get('input')!r:.40})"
+                                 for e in errors()) if callable(errors) else str(exc)
+                raise MaterialError(f"{where}: objects[{i}] is malformed: {what}") from None
         return cls(recs, meta=dict(obj.get("meta") or {}))
 
     def save(self, path: str | Path) -> Path:

@@ -32,6 +32,9 @@ __all__ = ["MPMEngine", "Timestep", "resolve_device"]
 def resolve_device(device: str) -> str:
     """A Warp device name that exists here ("cuda" without a GPU is refused with a clear error)."""
     init_warp()
+    if not isinstance(device, str) or not (device == "cpu" or device == "cuda" or
+                                           (device.startswith("cuda:") and device[5:].isdigit())):
+        raise SimulationError(f"device {device!r} is not cpu, cuda or cuda:N")
     if device.startswith("cuda") and not wp.is_cuda_available():
         raise SimulationError(f"device {device!r} requested but CUDA is not available to Warp on this machine")
     return device

@@ -189,6 +189,9 @@ def prepare_scene(path: str | Path, config) -> PreparedScene:
     from endogsim.priors.segmentation import segment_scene
 
     scene = load_scene(path, downscale=1.0 / config.resolution_scale, max_frames=config.max_frames)
+    if scene.frames.shape[0] < 2:
+        raise DataError(f"{path}: {scene.frames.shape[0]} frame; a 4D reconstruction needs at least 2 (motion, and "
+                        "frames held out to evaluate it)")
     if min(scene.width, scene.height) < MIN_TRAINING_SIZE:
         raise DataError(f"{path}: the frames are {scene.width}x{scene.height} px at resolution scale "
                         f"{config.resolution_scale:g}; reconstruction needs at least {MIN_TRAINING_SIZE} px a side "
