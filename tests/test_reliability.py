@@ -697,3 +697,12 @@ def test_a_single_frame_and_impossible_options_are_refused_before_any_work(tiny,
                    "device 'tpu' is not cpu, cuda or cuda:N")
     one_line_error(cli("identify", tiny, "--out", tmp_path / "i2", "--iters", 1, "--render-scale", 0.01),
                    "comparing motion needs at least 8 px a side")
+
+
+def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
+    for args, needle in ((["--interaction", "bogus"], "unknown interaction 'bogus'"),
+                         (["--materials-backend", "bogus"], "materials backend 'bogus' is neither"),
+                         (["--truth", tmp_path / "nope"], "nope: no scene.json")):
+        one_line_error(cli("run", tiny, "--out", tmp_path / "run", *args), needle)
+        assert not (tmp_path / "run").exists()  # refused before any stage ran
+    one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--json", tmp_path), "--json names a folder")

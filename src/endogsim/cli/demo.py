@@ -155,6 +155,7 @@ def register(app: typer.Typer) -> None:
         next to the prior, zero-motion and reconstruction baselines. Writes OUT/validate/validate.json and
         OUT/report.html."""
         from endogsim.cli.common import console, print_table
+        from endogsim.errors import DataError
         from endogsim.identify.config import IdentifyConfig
         from endogsim.io.atomic import write_json_atomic
         from endogsim.pipeline.run import PipelineConfig
@@ -166,6 +167,8 @@ def register(app: typer.Typer) -> None:
         )
         from endogsim.recon.config import ReconConfig
 
+        if json_out is not None and json_out.is_dir():
+            raise DataError(f"{json_out}: --json names a folder; give the JSON file to write")
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
         ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,

@@ -76,6 +76,15 @@ class PipelineConfig:
             self.scenario = RealScenario(**{k: tuple(v) if isinstance(v, list) else v for k, v in self.scenario.items()})
         if self.tool_motion not in get_args(ToolMotion):
             raise DataError(f"tool_motion {self.tool_motion!r} must be 'reconstructed' or 'truth'")
+        # Checked now, not after the half-hour reconstruction that comes before the stages using them.
+        from endogsim.materials.init import BACKENDS
+        from endogsim.pipeline.interaction import load_interaction
+
+        if self.materials_backend not in BACKENDS and not Path(self.materials_backend).is_file():
+            raise DataError(f"materials backend {self.materials_backend!r} is neither one of {', '.join(BACKENDS)} "
+                            "nor a material JSON file")
+        if self.interaction is not None:
+            load_interaction(self.interaction)
 
 
 def _load_state(path: Path) -> dict:
@@ -114,6 +123,10 @@ def run_pipeline(
     data, out = Path(data), Path(out)
     if not data.exists():
         raise DataError(f"{data}: no such dataset folder or video")
+    if truth is not None:
+        from endogsim.scene.schema import load_scene_spec
+
+        load_scene_spec(truth)  # a ground truth that cannot be read fails now, not after the reconstruction
     with run_folder(out, "run"):
         return _run_stages(data, out, cfg, truth, on_stage, stop_after, fresh)
 
