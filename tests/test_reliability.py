@@ -706,3 +706,19 @@ def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
         one_line_error(cli("run", tiny, "--out", tmp_path / "run", *args), needle)
         assert not (tmp_path / "run").exists()  # refused before any stage ran
     one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--json", tmp_path), "--json names a folder")
+
+
+def test_a_moved_run_folder_resumes_its_identification(tiny, tmp_path):
+    import shutil
+
+    from endogsim.identify import IdentifyConfig, run_identify
+
+    shutil.copytree(tiny, tmp_path / "a" / "scene")
+    run_identify(tmp_path / "a" / "scene", tmp_path / "a" / "identify", config=IdentifyConfig(iters=1, frame_stride=2, intervals=False),
+                 video=False)
+    first = json.loads((tmp_path / "a" / "identify" / "history.json").read_text())
+    shutil.move(tmp_path / "a", tmp_path / "b")  # the whole run folder, scene and all, somewhere else
+    m = run_identify(tmp_path / "b" / "scene", tmp_path / "b" / "identify",
+                     config=IdentifyConfig(iters=2, frame_stride=2, intervals=False), video=False)
+    again = json.loads((tmp_path / "b" / "identify" / "history.json").read_text())
+    assert m["iterations"] == 2 and again[0]["loss"] == first[0]["loss"]  # resumed, not started over

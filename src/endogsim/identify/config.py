@@ -164,6 +164,10 @@ class IdentifyConfig:
         """The frame stride of a clip of ``num_frames`` frames: ``frame_stride``, or when it is None 2 if that
         still compares at least :data:`MIN_COMPARED_FRAMES` frames, else 1."""
         if self.frame_stride is not None:
+            if math.ceil(num_frames / self.frame_stride) < 2:
+                raise MaterialError(f"frame_stride {self.frame_stride} compares "
+                                    f"{math.ceil(num_frames / self.frame_stride)} of {num_frames} frames; motion "
+                                    "needs at least 2")
             return self.frame_stride
         return 2 if math.ceil(num_frames / 2) >= MIN_COMPARED_FRAMES else 1
 

@@ -20,6 +20,7 @@ every iteration and a run resumes from it (same settings) after an interruption,
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -169,14 +170,32 @@ def _values(params: MaterialParams) -> tuple[dict[str, float], dict[str, float]]
     return ({str(o): E[params.slot(o)] for o in params.object_ids}, {str(o): nu[params.slot(o)] for o in params.object_ids})
 
 
-def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig) -> dict:
+def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig, run_dir: Path | None) -> dict:
+    """What a checkpoint must match to be resumed. The scene is named relative to the run folder, so that
+    a run folder moved with its scene (``endogsim run``'s RUN/scene and RUN/identify) still resumes."""
     cfg = config.to_json()
     cfg.pop("iters", None)  # a resumed run may be given a larger budget
     cfg.pop("time_budget", None)
     cfg.pop("device", None)
     cfg.pop("coarse_factor", None)  # measured after the optimisation, which it does not change
-    return {"scene": str(Path(problem.folder).resolve()), "frames": problem.num_frames, "config": cfg,
+    return {"scene": _scene_name(problem.folder, run_dir), "frames": problem.num_frames, "config": cfg,
             "init": init.to_json()["objects"]}
+
+
+def _scene_name(scene: str | Path, run_dir: Path | None) -> str:
+    """The scene folder relative to the run folder (absolute without one)."""
+    scene = Path(scene).resolve()
+    return str(scene) if run_dir is None else os.path.relpath(scene, Path(run_dir).resolve())
+
+
+def _same_run(old: dict | None, new: dict, run_dir: Path) -> bool:
+    """Whether a checkpoint's signature ``old`` is the run ``new``; checkpoints of earlier versions name
+    the scene absolutely."""
+    if not isinstance(old, dict):
+        return False
+    if Path(str(old.get("scene", ""))).is_absolute():
+        old = {**old, "scene": _scene_name(old["scene"], run_dir)}
+    return old == new
 
 
 def _signature_change(old: dict | None, new: dict) -> str:
@@ -285,13 +304,14 @@ def identify(
     if cfg.optimize_nu:
         groups.append({"params": [params.nu_raw], "lr_scale": cfg.lr_nu / cfg.lr})
     opt = SharedScaleAdam(groups, lr=cfg.lr, betas=(0.9, 0.99))
-    sig = _signature(problem, init_field, cfg)
+    cfg.stride(problem.num_frames)  # a stride that leaves one frame to compare is refused before any work
+    sig = _signature(problem, init_field, cfg, None if run_dir is None else Path(run_dir))
 
     start, history, best, seconds, stale, flat_run = 0, [], None, 0.0, 0, 0
     ckpt_path = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if ckpt_path is not None and ckpt_path.is_file() and resume:
         ck = torch.load(ckpt_path, weights_only=False)
-        if ck.get("version") != _CKPT_VERSION or ck.get("signature") != sig:
+        if ck.get("version") != _CKPT_VERSION or not _same_run(ck.get("signature"), sig, ckpt_path.parent):
             what = (_signature_change(ck.get("signature"), sig) if ck.get("version") == _CKPT_VERSION
                     else "an older version")
             raise DataError(f"{ckpt_path} was written by a run with other settings ({what}); use --fresh to start "

@@ -21,9 +21,7 @@ every 3rd pixel with small initial footprints, point tracks and a track warm-up,
 from __future__ import annotations
 
 import json
-import math
-import numbers
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -32,6 +30,7 @@ from endogsim.priors.depth import DEPTH_BACKENDS
 from endogsim.priors.flow import FlowConfig
 from endogsim.priors.segmentation import SEGMENTATION_BACKENDS
 from endogsim.recon.deformation import DeformationConfig
+from endogsim.typed import check_typed_fields
 
 #: "on", "off", or "auto" (decided from the data).
 Switch = Literal["auto", "on", "off"]
@@ -241,7 +240,7 @@ class ReconConfig:
             raise DataError(f"lr_camera_decay {self.lr_camera_decay} must be in (0, 1]")
         if not 0 < self.init_opacity < 1:
             raise DataError(f"init_opacity {self.init_opacity} must be in (0, 1)")
-        if self.time_budget_s is not None and self.time_budget_s <= 0:
+        if self.time_budget_s is not None and not self.time_budget_s > 0:  # nan too
             raise DataError(f"time_budget_s {self.time_budget_s} must be positive (or None)")
         for name, choices in (("camera_motion", get_args(Switch)), ("exposure", get_args(Switch)),
                               ("tool_instances", get_args(Switch)),
@@ -281,34 +280,6 @@ class ReconConfig:
             if str(exc).startswith(f"{source}:"):
                 raise
             raise DataError(f"{source}: {exc}") from None
-
-
-def check_typed_fields(config: object) -> None:
-    """Every field of the dataclass ``config`` holds the kind of value its declared default has (a number
-    where a number goes, an integer where a count goes, true/false for a switch, text for a name), and
-    numbers are finite: a config file's ``"iters": "100"`` is named here, not met deep in a run. Fields
-    whose default is None or made by a factory (nested configs) are not checked here."""
-    for f in fields(config):
-        v, d = getattr(config, f.name), f.default
-        if d is MISSING or d is None:
-            continue
-        if isinstance(d, bool):
-            ok, kind = isinstance(v, bool), "true or false"
-        elif isinstance(d, int):
-            ok, kind = isinstance(v, numbers.Integral) and not isinstance(v, bool), "an integer"
-        elif isinstance(d, float):
-            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-            kind = "a finite number"
-        elif isinstance(d, str):
-            ok, kind = isinstance(v, str), "text"
-        elif isinstance(d, tuple):
-            ok = isinstance(v, (tuple, list)) and all(isinstance(x, numbers.Integral) and not isinstance(x, bool)
-                                                      for x in v)
-            kind = "a list of integers"
-        else:
-            continue
-        if not ok:
-            raise DataError(f"{f.name} = {v!r} must be {kind}")
 
 
 def default_config(device: str = "cpu") -> ReconConfig:

@@ -21,8 +21,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from endogsim.errors import DataError
 from endogsim.gaussians.model import Gaussians
 from endogsim.recon.hexplane import HexPlane
+from endogsim.typed import check_typed_fields
 
 __all__ = ["DeformationConfig", "DeformationField"]
 
@@ -52,9 +54,6 @@ class DeformationConfig:
     deform_color: bool = False
 
     def __post_init__(self) -> None:
-        from endogsim.errors import DataError
-        from endogsim.recon.config import check_typed_fields
-
         check_typed_fields(self)
         if len(self.resolution) != 3 or min(self.resolution) < 2:
             raise DataError(f"deformation.resolution {list(self.resolution)} must be 3 integers >= 2 (x, y, z)")

@@ -327,6 +327,7 @@ def _check_geometry(spec: SceneSpec, path: Path) -> None:
     ids = [o.id for o in spec.objects]
     if any(isinstance(i, bool) or not isinstance(i, int) for i in ids) or len(set(ids)) != len(ids):
         raise DataError(f"{path}: object ids {ids} must be distinct integers")
+    _positive(spec.depth_scale, "depth_scale", path)
     _numbers(sc.box_lo, (3,), "scenario.box_lo", path)
     _positive(sc.box_size, "scenario.box_size (m)", path)
     _numbers(sc.gravity, (3,), "scenario.gravity (m/s^2)", path)
