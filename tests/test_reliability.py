@@ -643,6 +643,10 @@ def test_simulate_finds_the_identified_materials_of_either_run_layout(tiny, tmp_
     (ident / "materials_identified.json").write_text("{}")
     (ident / "metrics.json").write_text(json.dumps({"folder": "run/scene"}))
     assert resolve_scene(ident) == (tmp_path / "run/scene", ident / "materials_identified.json")
+    (ident / "metrics.json").write_text("{}")  # a reconstruction's metrics name no scene
+    with pytest.raises(DataError, match="names no scene folder"):
+        resolve_scene(ident)
+    one_line_error(cli("simulate", tiny, "-i", "poke", "--out", tiny), "--out is the scene")
     (ident / "metrics.json").write_text('{"folder": "run/sce')
     with pytest.raises(DataError, match="metrics.json: not a JSON object"):
         resolve_scene(ident)

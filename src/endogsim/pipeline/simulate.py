@@ -50,6 +50,9 @@ def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
             named = json.loads((p / "metrics.json").read_text()).get("folder", "")
         except (ValueError, AttributeError) as exc:
             raise DataError(f"{p / 'metrics.json'}: not a JSON object ({exc}); re-run the identification") from exc
+        if not named:
+            raise DataError(f"{p}: its metrics.json names no scene folder (an `endogsim reconstruct` run?); give a "
+                            "scene folder, or an `endogsim identify` / `endogsim run` folder")
         if not isinstance(named, str):
             raise DataError(f"{p / 'metrics.json'}: 'folder' is {named!r}, not the scene folder's path")
         for folder in (Path(named), p.parent / named):
@@ -282,6 +285,8 @@ def simulate_interaction(
     out = Path(out)
     inter = load_interaction(interaction)
     folder, default_mats = resolve_scene(scene)
+    if out.resolve() in (Path(folder).resolve(), Path(scene).resolve()):
+        raise DataError(f"{out}: --out is the scene (or run) folder itself; name a new folder for the simulation")
     base = load_sim_scene(folder, device=device)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
