@@ -188,19 +188,17 @@ def _scene_name(scene: str | Path, run_dir: Path | None) -> str:
     return str(scene) if run_dir is None else os.path.relpath(scene, Path(run_dir).resolve())
 
 
-def _same_run(old: dict | None, new: dict, run_dir: Path) -> bool:
-    """Whether a checkpoint's signature ``old`` is the run ``new``; checkpoints of earlier versions name
-    the scene absolutely."""
+def _stored_signature(old: dict | None, run_dir: Path) -> dict:
+    """A checkpoint's signature as this version writes it: earlier versions named the scene absolutely."""
     if not isinstance(old, dict):
-        return False
+        return {}
     if Path(str(old.get("scene", ""))).is_absolute():
         old = {**old, "scene": _scene_name(old["scene"], run_dir)}
-    return old == new
+    return old
 
 
-def _signature_change(old: dict | None, new: dict) -> str:
+def _signature_change(old: dict, new: dict) -> str:
     """What differs between two checkpoint signatures, named for the user (a moved scene folder is one)."""
-    old = old or {}
     keys = [k for k in new if k != "config" and old.get(k) != new[k]]
     keys += [f"option {k}" for k in sorted(set(old.get("config", {})) | set(new["config"]))
              if old.get("config", {}).get(k) != new["config"].get(k)]
@@ -311,9 +309,9 @@ def identify(
     ckpt_path = None if run_dir is None else run_dir / CHECKPOINT_NAME
     if ckpt_path is not None and ckpt_path.is_file() and resume:
         ck = torch.load(ckpt_path, weights_only=False)
-        if ck.get("version") != _CKPT_VERSION or not _same_run(ck.get("signature"), sig, ckpt_path.parent):
-            what = (_signature_change(ck.get("signature"), sig) if ck.get("version") == _CKPT_VERSION
-                    else "an older version")
+        stored = _stored_signature(ck.get("signature"), ckpt_path.parent)
+        if ck.get("version") != _CKPT_VERSION or stored != sig:
+            what = _signature_change(stored, sig) if ck.get("version") == _CKPT_VERSION else "an older version"
             raise DataError(f"{ckpt_path} was written by a run with other settings ({what}); use --fresh to start "
                             "over or choose another --out")
         with torch.no_grad():

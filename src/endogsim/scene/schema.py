@@ -353,7 +353,7 @@ def _check_geometry(spec: SceneSpec, path: Path) -> None:
                                 f"scene does not have (one of {', '.join(sorted(names))})")
             try:
                 border = ObjectBoundary.from_json(b).border
-            except (TypeError, ValueError, KeyError) as exc:
+            except (TypeError, ValueError, KeyError, DataError) as exc:
                 raise DataError(f"{path}: boundary condition {b!r:.80}: {exc}") from None
             _positive(border, "an anchors border (m)", path, zero=True)
         elif "cells" in b:
@@ -371,7 +371,8 @@ def _check_geometry(spec: SceneSpec, path: Path) -> None:
         _numbers(t.tip, (3,), f"{what} tip (m)", path)
         _numbers(t.end, (3,), f"{what} end (m)", path)
         _positive(t.radius, f"{what} radius (m)", path)
-        _numbers(t.transforms, (len(t.transforms), 4, 4), f"{what} transforms", path)
+        frames = len(t.transforms) if isinstance(t.transforms, list) else 0
+        _numbers(t.transforms, (frames, 4, 4), f"{what} transforms", path)
     cam = spec.camera
     K = _numbers(cam.K, (3, 3), "camera.K (pixels)", path)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -380,7 +381,8 @@ def _check_geometry(spec: SceneSpec, path: Path) -> None:
     _positive(cam.height, "camera.height (px)", path, integer=True)
     _numbers(cam.viewmat, (4, 4), "camera.viewmat", path)
     if cam.viewmats is not None:
-        _numbers(cam.viewmats, (len(cam.viewmats), 4, 4), "camera.viewmats", path)
+        frames = len(cam.viewmats) if isinstance(cam.viewmats, list) else 0
+        _numbers(cam.viewmats, (frames, 4, 4), "camera.viewmats", path)
 
 
 def _check_files(spec: SceneSpec, path: Path) -> None:
