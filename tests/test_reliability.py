@@ -726,3 +726,9 @@ def test_a_moved_run_folder_resumes_its_identification(tiny, tmp_path):
                      config=IdentifyConfig(iters=2, frame_stride=2, intervals=False), video=False)
     again = json.loads((tmp_path / "b" / "identify" / "history.json").read_text())
     assert m["iterations"] == 2 and again[0]["loss"] == first[0]["loss"]  # resumed, not started over
+
+
+def test_a_report_of_metrics_that_are_not_an_identify_runs_is_refused(tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").write_text("{}")  # it wrote a report of "None"s
+    one_line_error(cli("report", tmp_path / "run"), "metrics.json lacks scene, loss, iterations, materials")

@@ -213,6 +213,10 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
     metrics = _load_json(run / "metrics.json")
     if metrics is None:
         raise DataError(f"{run}: no metrics.json (not an `endogsim identify` run folder)")
+    missing = [k for k in ("scene", "loss", "iterations", "materials") if k not in metrics]
+    if missing:
+        raise DataError(f"{run / 'metrics.json'} lacks {', '.join(missing)}: not the metrics of an `endogsim "
+                        "identify` run (a reconstruction's? an interrupted run's?)")
     out = Path(out) if out is not None else run / "report.html"
     base = out.parent
     rel = lambda p: Path(os.path.relpath(Path(p).resolve(), base.resolve())).as_posix()  # noqa: E731
