@@ -641,8 +641,8 @@ def test_simulate_finds_the_identified_materials_of_either_run_layout(tiny, tmp_
     ident = tmp_path / "ident"  # `endogsim identify`: metrics.json names the scene folder, maybe relatively
     ident.mkdir()
     (ident / "materials_identified.json").write_text("{}")
-    (ident / "metrics.json").write_text(json.dumps({"folder": "run/scene"}))
-    assert resolve_scene(ident) == (tmp_path / "run/scene", ident / "materials_identified.json")
+    (ident / "metrics.json").write_text(json.dumps({"folder": "/gone/scene", "folder_from_run": "../run/scene"}))
+    assert resolve_scene(ident) == (ident / "../run/scene", ident / "materials_identified.json")  # both moved
     (ident / "metrics.json").write_text("{}")  # a reconstruction's metrics name no scene
     with pytest.raises(DataError, match="names no scene folder"):
         resolve_scene(ident)
@@ -705,7 +705,7 @@ def test_a_single_frame_and_impossible_options_are_refused_before_any_work(tiny,
 
 def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
     for args, needle in ((["--interaction", "bogus"], "unknown interaction 'bogus'"),
-                         (["--materials-backend", "bogus"], "materials backend 'bogus' is neither"),
+                         (["--materials-backend", "bogus"], "--materials-backend 'bogus' is neither"),
                          (["--truth", tmp_path / "nope"], "nope: no scene.json")):
         one_line_error(cli("run", tiny, "--out", tmp_path / "run", *args), needle)
         assert not (tmp_path / "run").exists()  # refused before any stage ran
@@ -732,3 +732,20 @@ def test_a_report_of_metrics_that_are_not_an_identify_runs_is_refused(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "metrics.json").write_text("{}")  # it wrote a report of "None"s
     one_line_error(cli("report", tmp_path / "run"), "metrics.json lacks scene, loss, iterations, materials")
+
+
+def test_a_new_interaction_draws_the_instruments_the_video_hid(tiny, tmp_path):
+    from endogsim.pipeline.interaction import load_interaction
+    from endogsim.pipeline.simulate import build_interaction
+    from endogsim.scene.folder import load_sim_scene
+
+    def hide(d):  # the probe out of view in frame 1 of the 4 filmed
+        d["scenario"]["tools"][0]["visible"] = [True, False, True, True]
+
+    scene = scene_copy(tiny, tmp_path / "scene", hide)
+    base = load_sim_scene(scene)
+    assert set(base.tool_visible) == {2}
+    problem, _ = build_interaction(base, load_interaction("poke"))
+    assert problem.tool_visible == {}  # the video's visibility is not the new experiment's
+    r = cli("simulate", scene, "-i", "poke", "--out", tmp_path / "sim", "--frames", 6, "--no-ply")
+    assert r.exit_code == 0, r.output  # longer than the clip: it indexed the clip's visibility past its end

@@ -12,11 +12,13 @@ from endogsim.errors import DataError
 __all__ = ["check_typed_fields"]
 
 
-def check_typed_fields(config: object) -> None:
+def check_typed_fields(config: object, prefix: str = "") -> None:
     """Every field of the dataclass ``config`` holds the kind of value its declared default has (a number
     where a number goes, an integer where a count goes, true/false for a switch, text for a name), and
     numbers are finite: a config file's ``"iters": "100"`` is named here, not met deep in a run. Fields
-    whose default is None or made by a factory (nested configs) are not checked here."""
+    whose default is None or made by a factory (nested configs) are not checked here. A whole number
+    written as a float (TOML's ``iters = 1e4``) is taken as the integer. ``prefix`` names a nested config
+    in the messages ("deformation.")."""
     for f in fields(config):
         v, d = getattr(config, f.name), f.default
         if d is MISSING or d is None:
@@ -24,6 +26,9 @@ def check_typed_fields(config: object) -> None:
         if isinstance(d, bool):
             ok, kind = isinstance(v, bool), "true or false"
         elif isinstance(d, int):
+            if isinstance(v, float) and v.is_integer():
+                v = int(v)
+                setattr(config, f.name, v)
             ok, kind = isinstance(v, numbers.Integral) and not isinstance(v, bool), "an integer"
         elif isinstance(d, float):
             ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
@@ -37,4 +42,4 @@ def check_typed_fields(config: object) -> None:
         else:
             continue
         if not ok:
-            raise DataError(f"{f.name} = {v!r} must be {kind}")
+            raise DataError(f"{prefix}{f.name} = {v!r} must be {kind}")

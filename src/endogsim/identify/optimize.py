@@ -210,12 +210,12 @@ def _signature_change(old: dict, new: dict) -> str:
 def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Path | None) -> tuple[Observations, object]:
     """Observed flow (cached in ``run_dir``) and the observations at the rendering scale, plus the camera."""
     cache = None if run_dir is None else Path(run_dir) / "observed_flow.npz"
-    U = observed_flow(problem.frames, config.flow, cache)
     cam = problem.camera if config.render_scale == 1 else problem.camera.scaled(config.render_scale)
     if min(cam.width, cam.height) < 8:
         raise DataError(f"render_scale {config.render_scale:g} renders {problem.folder}'s "
                         f"{problem.camera.width}x{problem.camera.height} frames at {cam.width}x{cam.height} px; "
                         "comparing motion needs at least 8 px a side")
+    U = observed_flow(problem.frames, config.flow, cache)
     tracks = None
     if problem.tracks is not None:  # the reconstruction's trajectories as camera t saw them
         view = Camera(cam.K, cam.width, cam.height) if problem.viewmats is not None else cam

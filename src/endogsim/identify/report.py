@@ -18,6 +18,7 @@ Run folder written by :func:`write_outputs` (every file atomically):
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,7 +163,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {
-        "scene": problem.spec.name, "folder": str(Path(problem.folder).resolve()), "init": init_name,
+        "scene": problem.spec.name, "folder": str(Path(problem.folder).resolve()),
+        "folder_from_run": os.path.relpath(Path(problem.folder).resolve(), Path(run_dir).resolve()), "init": init_name,
         "loss": config.loss, "grad_mode": config.grad_mode, "global_material": config.global_material,
         "frame_stride": stride,  # the one used (the config's None: automatic)
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,

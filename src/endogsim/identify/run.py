@@ -13,11 +13,20 @@ from endogsim.identify.optimize import CHECKPOINT_NAME, identify
 from endogsim.identify.report import write_outputs
 from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
+from endogsim.materials.init import BACKENDS
 from endogsim.scene.folder import SimScene, load_sim_scene
 
-__all__ = ["initial_field", "check_field_objects", "run_identify", "INIT_CHOICES"]
+__all__ = ["initial_field", "check_init", "check_field_objects", "run_identify", "INIT_CHOICES"]
 
-INIT_CHOICES = ("manual", "prior", "mllm", "replay")
+#: The named initialisations (the materials back-ends); anything else must be a material JSON file.
+INIT_CHOICES = BACKENDS
+
+
+def check_init(init: str, option: str = "--init") -> None:
+    """Refuse an initialisation (given as ``option``) that is neither a materials back-end nor an existing
+    material JSON file."""
+    if init not in INIT_CHOICES and not Path(init).is_file():
+        raise DataError(f"{option} {init!r} is neither one of {', '.join(INIT_CHOICES)} nor a material JSON file")
 
 
 def initial_field(problem: SimScene, init: str = "prior") -> tuple[MaterialField, bool]:
@@ -39,10 +48,8 @@ def initial_field(problem: SimScene, init: str = "prior") -> tuple[MaterialField
                           K=problem.camera.K.double().numpy(), object_masks=problem.object_masks,
                           labels=problem.labels, source=str(problem.folder))
         return initialise_materials(problem.labels, MaterialInitConfig(backend=init), scene=scene), False
-    path = Path(init)
-    if not path.is_file():
-        raise DataError(f"--init {init!r} is neither one of {', '.join(INIT_CHOICES)} nor a material JSON file")
-    return MaterialField.load(path), True
+    check_init(init)
+    return MaterialField.load(Path(init)), True
 
 
 def run_identify(

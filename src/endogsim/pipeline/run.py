@@ -77,12 +77,10 @@ class PipelineConfig:
         if self.tool_motion not in get_args(ToolMotion):
             raise DataError(f"tool_motion {self.tool_motion!r} must be 'reconstructed' or 'truth'")
         # Checked now, not after the half-hour reconstruction that comes before the stages using them.
-        from endogsim.materials.init import BACKENDS
+        from endogsim.identify.run import check_init
         from endogsim.pipeline.interaction import load_interaction
 
-        if self.materials_backend not in BACKENDS and not Path(self.materials_backend).is_file():
-            raise DataError(f"materials backend {self.materials_backend!r} is neither one of {', '.join(BACKENDS)} "
-                            "nor a material JSON file")
+        check_init(self.materials_backend, "--materials-backend")
         if self.interaction is not None:
             load_interaction(self.interaction)
 

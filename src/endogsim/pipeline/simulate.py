@@ -36,7 +36,7 @@ def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
     A scene folder has ``scene.json`` (no default materials). A run folder has the identified materials
     (``materials_identified.json`` of ``endogsim identify``, or ``identify/materials_identified.json`` of
     ``endogsim run``) and either a ``scene/`` subfolder with ``scene.json`` or a ``metrics.json`` whose
-    ``folder`` names the scene (a relative name is also looked up beside the run folder).
+    ``folder`` names the scene (or ``folder_from_run``, relative to the run folder, when both were moved).
     """
     p = Path(path)
     if (p / "scene.json").is_file():
@@ -47,16 +47,17 @@ def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
         return p / "scene", mats
     if (p / "metrics.json").is_file():
         try:
-            named = json.loads((p / "metrics.json").read_text()).get("folder", "")
+            metrics = json.loads((p / "metrics.json").read_text())
+            named, relative = metrics.get("folder", ""), metrics.get("folder_from_run")
         except (ValueError, AttributeError) as exc:
             raise DataError(f"{p / 'metrics.json'}: not a JSON object ({exc}); re-run the identification") from exc
         if not named:
             raise DataError(f"{p}: its metrics.json names no scene folder (an `endogsim reconstruct` run?); give a "
                             "scene folder, or an `endogsim identify` / `endogsim run` folder")
-        if not isinstance(named, str):
+        if not isinstance(named, str) or not isinstance(relative, (str, type(None))):
             raise DataError(f"{p / 'metrics.json'}: 'folder' is {named!r}, not the scene folder's path")
-        for folder in (Path(named), p.parent / named):
-            if named and (folder / "scene.json").is_file():
+        for folder in (Path(named), p / (relative or named)):  # as written, or moved with its run folder
+            if (folder / "scene.json").is_file():
                 return folder, mats
         raise DataError(f"{p}/metrics.json names scene folder {named!r}, which has no scene.json")
     raise DataError(f"{p}: neither a scene folder (scene.json) nor a run folder (metrics.json / scene/)")
@@ -221,7 +222,9 @@ def build_interaction(problem, inter: Interaction):
         g = g.with_(opacity_logits=torch.where(hide, torch.full_like(g.opacity_logits, -30.0), g.opacity_logits))
     info["hidden_tools"] = hidden
     scenario = replace(problem.scenario, forces=forces, colliders=colliders)
-    return replace(problem, scenario=scenario, tool_transforms=tool_tf, gaussians=g), info
+    # A new interaction is not the video: its instruments are drawn in every frame it simulates (the
+    # video's visibility is about the filmed frames, and the interaction may be longer).
+    return replace(problem, scenario=scenario, tool_transforms=tool_tf, gaussians=g, tool_visible={}), info
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -260,6 +260,9 @@ class ReconConfig:
                 raise DataError(f"{source}: {key} = {data[key]!r} must be a table of {key} options")
         values = {k: v for k, v in data.items() if k not in ("deformation", "flow")}
         flow = {**asdict(cfg.flow), **data.get("flow", {})}
+        bad = sorted(set(data.get("flow", {})) - {f.name for f in fields(FlowConfig)})
+        if bad:
+            raise DataError(f"{source}: unknown flow option(s) {bad}")
         deform = asdict(cfg.deformation)
         if "deformation" in data:
             dn = {f.name for f in fields(DeformationConfig)}

@@ -54,7 +54,7 @@ class DeformationConfig:
     deform_color: bool = False
 
     def __post_init__(self) -> None:
-        check_typed_fields(self)
+        check_typed_fields(self, "deformation.")
         if len(self.resolution) != 3 or min(self.resolution) < 2:
             raise DataError(f"deformation.resolution {list(self.resolution)} must be 3 integers >= 2 (x, y, z)")
         if not self.multires or min(self.multires) < 1:
