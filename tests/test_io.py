@@ -272,6 +272,14 @@ def test_cholec_missing_mask(tmp_path):
     _names_file(e, d / "frame_2_endo_watershed_mask.png")
 
 
+def test_endonerf_poses_stored_as_text_are_named(tmp_path):
+    root = make_endonerf(tmp_path / "clip")
+    np.save(root / "poses_bounds.npy", _poses_bounds().astype(str))  # a TypeError traceback before
+    with pytest.raises(DataError, match="poses are stored as <U32, not numbers") as e:
+        load_scene(root)
+    _names_file(e, root / "poses_bounds.npy")
+
+
 def test_cholec_times_follow_the_frame_numbers(tmp_path):
     d = tmp_path / "clip"
     d.mkdir()

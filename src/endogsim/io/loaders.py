@@ -155,6 +155,8 @@ def _read_poses_bounds(path: Path, n_images: int) -> tuple[np.ndarray, float, fl
     arr = _load_npy(path, "the LLFF poses array (N, 17)")
     if arr.ndim != 2 or arr.shape[1] != 17:
         raise DataError(f"{path}: poses have shape {arr.shape}, expected (N, 17) in LLFF layout")
+    if not np.issubdtype(arr.dtype, np.integer) and not np.issubdtype(arr.dtype, np.floating):
+        raise DataError(f"{path}: poses are stored as {arr.dtype}, not numbers (expected a float array)")
     if not np.isfinite(arr).all():
         raise DataError(f"{path}: poses contain NaN or inf")
     if arr.shape[0] != n_images:
