@@ -280,6 +280,13 @@ def test_endonerf_poses_stored_as_text_are_named(tmp_path):
     _names_file(e, root / "poses_bounds.npy")
 
 
+def test_depth_maps_without_a_measurement_are_refused(tmp_path):
+    root = make_endonerf(tmp_path / "clip", depth_npy=lambda i: np.zeros((H, W)))  # numpy warnings, then
+    with pytest.raises(DataError, match="every depth pixel of the 4 maps is 0") as e:  # "no tissue pixel"
+        load_scene(root)
+    _names_file(e, root / "depth")
+
+
 def test_cholec_times_follow_the_frame_numbers(tmp_path):
     d = tmp_path / "clip"
     d.mkdir()

@@ -210,7 +210,11 @@ def _load_depth(depth_dir: Path, n_all: int, n: int, w0: int, h0: int, size: tup
     if saturated:
         notes.append(f"{saturated / total:.1%} of the depth pixels in {depth_dir.name}/ are saturated at 65535 "
                      f"(would read as {65535 * depth_scale:.4g} m); they are treated as invalid (no depth)")
-    return np.stack(out)
+    depth = np.stack(out)
+    if not (depth > 0).any():
+        raise DataError(f"{depth_dir}: every depth pixel of the {len(paths)} maps is 0 or saturated (no "
+                        "measurement); remove the folder to use a depth model or the fallback")
+    return depth
 
 
 def load_endonerf(folder: str | Path, *, downscale: float = 1.0, max_frames: int | None = None,
