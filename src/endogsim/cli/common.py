@@ -56,7 +56,7 @@ def output_folder(value: Path | None) -> Path | None:
     """``--out`` callback: the working folder itself (``.``, or an empty ``--out ""``, which reads the same,
     as from an unset shell variable) is refused: a run folder's files would land among the user's own, and a
     replaced folder would take them with it."""
-    if value is not None and (str(value) in ("", ".") or value.resolve() == Path.cwd().resolve()):
+    if value is not None and value.resolve() == Path.cwd().resolve():  # Path("") is Path(".")
         raise typer.BadParameter(f"name a folder to write (got the working folder {str(value)!r}; an empty "
                                  "--out \"\" reads as '.')")
     return value
