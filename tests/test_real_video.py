@@ -66,6 +66,53 @@ def test_the_collider_is_fitted_to_the_grey_core_not_to_a_leaking_mask():
     assert fits[0].pushed == 0.0 and fits[0].inside == 0
 
 
+def test_the_working_end_is_the_one_inside_the_view_not_the_one_farther_in_depth():
+    from endogsim.pipeline.scene_from_recon import working_end
+
+    K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
+    rect = np.ones((240, 320), bool)
+    shaft_end = np.array([-0.1, 0.0, 0.06])  # projects left of the image: where the shaft comes in
+    jaws = np.array([0.0, 0.005, 0.05])      # in the middle, and nearer the camera (as monocular depth has it)
+    tip, end, how = working_end(shaft_end, jaws, K, rect)
+    assert how == "image" and np.array_equal(tip, jaws) and np.array_equal(end, shaft_end)
+    assert np.array_equal(working_end(jaws, shaft_end, K, rect)[0], jaws)  # whatever the fitted order
+    # An endoscope's round field (CholecSeg8K): an end near the circle's edge is the shaft's, though it lies
+    # well inside the image rectangle.
+    yy, xx = np.mgrid[:240, :320]
+    disc = (xx - 160) ** 2 + (yy - 120) ** 2 <= 110 ** 2
+    near_rim = np.array([0.0225, -0.015, 0.05])  # (250, 60): 2 px inside the rim, 60 px below the top
+    centre = np.array([0.002, 0.002, 0.06])
+    assert disc[60, 250] and not disc[58, 252]
+    tip, end, how = working_end(near_rim, centre, K, disc)
+    assert how == "image" and np.array_equal(tip, centre) and np.array_equal(end, near_rim)
+    # Both ends equally deep inside: the fitted order stands.
+    a, b = np.array([-0.01, 0.0, 0.05]), np.array([0.01, 0.0, 0.05])
+    assert working_end(a, b, K, rect)[2] == "depth" and np.array_equal(working_end(a, b, K, rect)[0], a)
+
+
+def test_the_collider_reaches_the_jaws_beyond_the_grey_shaft():
+    from endogsim.gaussians.model import Gaussians
+    from endogsim.pipeline.scene_from_recon import instrument_colliders
+
+    g = torch.Generator().manual_seed(0)
+    # A grey shaft of radius 3 mm along x at 4 cm from x = -60 mm (out of view on the left) to 0, and the
+    # jaws, brownish in the light, from 0 to 8 mm: the grey core ends where the jaws begin.
+    n = 400
+    s = torch.rand(n, generator=g) * 0.06 - 0.06
+    a = torch.rand(n, generator=g) * torch.pi
+    shaft = torch.stack([s, -0.003 * torch.cos(a), 0.04 - 0.003 * torch.sin(a)], 1)
+    j = torch.rand(100, generator=g) * 0.008
+    jaws = torch.stack([j, 0.002 * (torch.rand(100, generator=g) - 0.5), torch.full((100,), 0.0385)], 1)
+    tool = Gaussians.from_points(torch.cat([shaft, jaws]), torch.cat([torch.full((n, 3), 0.6),
+                                 torch.tensor([[0.6, 0.4, 0.3]]).expand(100, 3)]), scales=0.0005, object_ids=7,
+                                 opacity=0.9)
+    K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
+    fit = instrument_colliders(tool, [7], _sheet(z=0.05), dx=0.002, K=K, field=np.ones((240, 320), bool))[0]
+    assert fit.oriented == "image" and fit.core == n
+    assert 0.0075 < fit.tip[0] < 0.0085 and fit.end[0] < -0.055  # the tip at the jaws' end, the end off view
+    assert fit.to_json()["working_end_from"] == "image"
+
+
 # ------------------------------------------------------------------------------------------------- coverage
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):

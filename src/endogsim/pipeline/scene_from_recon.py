@@ -118,6 +118,7 @@ class ToolFit:
         gaussians: the instrument's Gaussians; core: those fitted (its grey core, or all when too few are grey).
         pushed: distance (metres) the capsule was moved towards the camera out of the tissue.
         inside: tissue particles inside the capsule as fitted (before the push).
+        oriented: how its working end (``tip``) was found: "image" (:func:`working_end`) or "depth".
     """
 
     object_id: int
@@ -128,11 +129,12 @@ class ToolFit:
     core: int
     pushed: float = 0.0
     inside: int = 0
+    oriented: str = "depth"
 
     def to_json(self) -> dict:
         return {"object_id": self.object_id, "tip": self.tip.tolist(), "end": self.end.tolist(), "radius": self.radius,
                 "gaussians": self.gaussians, "core_gaussians": self.core, "pushed_m": self.pushed,
-                "tissue_particles_inside_before_push": self.inside}
+                "tissue_particles_inside_before_push": self.inside, "working_end_from": self.oriented}
 
 
 def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None,
@@ -165,6 +167,54 @@ def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None
     a, b = c_axis + axis * np.percentile(s, 1), c_axis + axis * np.percentile(s, 99)
     tip, end = (a, b) if np.linalg.norm(a - cam) >= np.linalg.norm(b - cam) else (b, a)
     return tip, end, radius
+
+
+def working_end(tip: np.ndarray, end: np.ndarray, K: np.ndarray, field: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """Orient a capsule fitted to an instrument: (tip, end, how), ``tip`` its working end (the jaws).
+
+    Instruments enter the view from its edge (through a trocar outside it), so the end whose image lies
+    deeper inside the field of view is the working end. Depth cannot tell: a monocular reconstruction put
+    the shaft end farther from the camera than the jaws on all three instruments of the shared clips
+    (EndoNeRF pulling's grasper and probe, CholecSeg8K's grasper), so the bite of every grasp sat on the
+    shaft. When both ends are equally deep inside (within 2 px; an instrument wholly in view), the
+    fitted order is kept ("depth").
+
+    Args:
+        tip, end: [3] capsule axis ends at frame 0 (metres, camera frame).
+        K: [3, 3] intrinsics; field: [H, W] bool, pixels inside the endoscope's field of view.
+    Returns:
+        (tip, end, "image" | "depth").
+    """
+    import cv2
+
+    H, W = field.shape
+    # Distance (px) to the nearest pixel outside the field, the image's own border counted as outside.
+    inside = cv2.distanceTransform(np.pad(field, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+
+    def depth_in_view(p: np.ndarray) -> float:
+        if p[2] <= 0:
+            return -math.inf
+        u, v = (K @ p)[:2] / (K @ p)[2]
+        if 0 <= u < W and 0 <= v < H:
+            return float(inside[int(v), int(u)])
+        return -float(np.hypot(max(-u, 0.0, u - W), max(-v, 0.0, v - H)))  # outside the image: how far
+
+    d_tip, d_end = depth_in_view(np.asarray(tip, float)), depth_in_view(np.asarray(end, float))
+    if abs(d_tip - d_end) < 2.0:
+        return tip, end, "depth"
+    return (tip, end, "image") if d_tip > d_end else (end, tip, "image")
+
+
+def extend_to_jaws(tip: np.ndarray, end: np.ndarray, radius: float, points: np.ndarray) -> np.ndarray:
+    """The working end moved along the axis to the farthest of the instrument's Gaussians ``points``
+    [N, 3] within two radii of the axis (the 99th percentile): a capsule fitted to the grey core of the
+    shaft stops where the jaws begin (CholecSeg8K's grasper: 8 mm short), and the jaws are what grasps.
+    Never shortened. Returns the new tip [3]."""
+    axis = (np.asarray(tip, float) - end) / max(float(np.linalg.norm(np.asarray(tip, float) - end)), 1e-12)
+    s = (np.asarray(points, float) - end) @ axis
+    near = _segment_distance(points, end, end + axis * max(s.max(), 0.0)) <= 2 * radius
+    reach = float(np.percentile(s[near], 99)) if near.any() else 0.0
+    return end + axis * max(reach, float(np.linalg.norm(np.asarray(tip, float) - end)))
 
 
 def grey_core(g: Gaussians, max_saturation: float, min_opacity: float = 0.3, min_count: int = 20) -> torch.Tensor:
@@ -217,14 +267,18 @@ def push_out_of_tissue(tip: np.ndarray, end: np.ndarray, radius: float, tissue: 
 
 
 def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: np.ndarray, dx: float,
-                         scenario: RealScenario = RealScenario()) -> list[ToolFit]:
-    """One capsule per instrument, fitted to its grey core at frame 0 and pushed out of the tissue.
+                         scenario: RealScenario = RealScenario(), K: np.ndarray | None = None,
+                         field: np.ndarray | None = None) -> list[ToolFit]:
+    """One capsule per instrument, fitted to its grey core at frame 0, its working end found in the image
+    (:func:`working_end`) and reaching to the jaws (:func:`extend_to_jaws`), pushed out of the tissue.
 
     Args:
         g0: every Gaussian at frame 0 (world metres; the camera at the origin).
         tool_ids: the instruments' object ids (one per instrument).
         tissue_particles: [P, 3] the tissue's particles at frame 0 (metres).
         dx: the simulation grid's cell (metres).
+        K: [3, 3] intrinsics and field: [H, W] bool, the endoscope's field of view (all True without a
+            border), to find each instrument's working end; without them, the end farther from the camera.
     Returns:
         a :class:`ToolFit` per instrument with at least 4 Gaussians; warns (:class:`DataWarning`) for every
         instrument whose capsule held tissue particles, with the count and the distance it was moved (one
@@ -247,12 +301,16 @@ def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: n
             warnings.warn(f"instrument {oid}: its Gaussians measure a radius of {measured * 1e3:.1f} mm; the collider "
                           f"takes {radius * 1e3:.1f} mm, the nearest standard instrument size (the depth of a "
                           "monocular reconstruction scales every size)", DataWarning, stacklevel=2)
+        oriented = "depth"
+        if K is not None and field is not None:
+            tip, end, oriented = working_end(tip, end, K, field)
+            tip = extend_to_jaws(tip, end, radius, tool.means.detach().double().numpy())
         tip, end, pushed, inside = push_out_of_tissue(tip, end, radius, tissue_particles, scenario.clearance * dx)
         if inside:
             warnings.warn(f"instrument {oid}: its fitted collider (radius {radius * 1e3:.1f} mm) held {inside} tissue "
                           f"particles at frame 0; moved {pushed * 1e3:.2f} mm towards the camera out of the tissue",
                           DataWarning, stacklevel=2)
-        fits.append(ToolFit(oid, tip, end, radius, int(sel.sum()), int(core.sum()), pushed, inside))
+        fits.append(ToolFit(oid, tip, end, radius, int(sel.sum()), int(core.sum()), pushed, inside, oriented))
     return fits
 
 
@@ -386,7 +444,10 @@ def scene_from_reconstruction(
     tissue_particles = build_particles(gaussian_surfaces(g0, [o.id for o in spec.deformable]), spec, rec.camera,
                                        ident).particles.x.double().numpy()
     if gt is None:
-        fits = instrument_colliders(g0, tool_ids, tissue_particles, spec.scenario.box_size / ident.grid, scenario)
+        field = (np.ones((cam.height, cam.width), bool) if rec.field_of_view is None
+                 else rec.field_of_view.cpu().numpy().astype(bool))
+        fits = instrument_colliders(g0, tool_ids, tissue_particles, spec.scenario.box_size / ident.grid, scenario,
+                                    K=cam.K.double().cpu().numpy(), field=field)
         shapes = {f.object_id: (f.tip, f.end, f.radius) for f in fits}
     else:  # benchmark protocol: the ground truth's collider shapes
         fits = []
