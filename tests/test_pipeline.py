@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -88,6 +89,15 @@ def test_run_resumes_after_an_interrupted_stage_and_reports(tiny_truth, tmp_path
     assert not checker.stack
     for link in checker.links:
         assert (html.parent / link).exists(), link
+
+    # The finished run moved elsewhere resumes with nothing to do and names its outputs where they are now.
+    moved = tmp_path.parent / (tmp_path.name + "_moved")
+    shutil.move(tmp_path, moved)
+    seen.clear()
+    state = run_pipeline(tiny_truth, moved, cfg, truth=tiny_truth, on_stage=lambda s, st: seen.append((s, st)))
+    assert all(st == "skip" for _, st in seen) and len(seen) == 5
+    assert Path(state["stages"]["report"]["report"]) == moved / "report.html"
+    assert json.loads((moved / "run.json").read_text())["stages"]["scenario"]["scene"] == str(moved / "scene")
 
 
 def test_run_refuses_a_missing_dataset(tmp_path):

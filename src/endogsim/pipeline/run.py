@@ -209,4 +209,10 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
         stage(name, steps[name])
         if stop_after == name:
             break
+    # Where the outputs are now: a run folder moved after it finished resumes with every stage skipped,
+    # and the paths stored then would name the old place.
+    for name, key in (("scenario", "scene"), ("report", "report")):
+        if key in state["stages"].get(name, {}):
+            state["stages"][name][key] = str(out / OUTPUTS[name])
+    write_json_atomic(state_path, state)
     return state

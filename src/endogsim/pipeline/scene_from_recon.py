@@ -23,7 +23,9 @@ Two ways to get the scenario:
 Colliders on real video (:func:`instrument_colliders`): each instrument is its own object (the
 reconstruction splits tool masks into tracked instances), and its capsule is fitted to its grey metal core
 (low-saturation Gaussians: a fallback tool mask leaks onto reddish tissue, and those Gaussians would widen
-the capsule into the tissue). A monocular reconstruction places instruments a few millimetres off in
+the capsule into the tissue), its tip is the end deeper inside the field of view (instruments enter the view
+from its edge; depth got it backwards on every real instrument tried) and reaches to the jaws beyond the
+grey core. A monocular reconstruction places instruments a few millimetres off in
 depth, so a fitted capsule can start inside the tissue; it is then moved towards the camera along its
 viewing ray until no tissue particle lies inside it, with a warning giving the count and the distance.
 """
@@ -46,7 +48,7 @@ from endogsim.gaussians.model import Gaussians
 from endogsim.io.atomic import atomic_folder, write_json_atomic
 
 __all__ = ["RealScenario", "ToolFit", "scene_from_reconstruction", "fit_tool_capsule", "instrument_colliders",
-           "push_out_of_tissue", "grey_core"]
+           "push_out_of_tissue", "grey_core", "working_end", "extend_to_jaws"]
 
 
 @dataclass(frozen=True)
@@ -144,7 +146,8 @@ def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None
     The axis is the principal direction of the points; the radius is half the tool's width across the
     axis and the viewing ray (clipped to ``radius_bounds``, metres, when given); the axis sits that far
     behind the visible surface (the points lie on the near half of the shaft). ``tip`` is the end farther
-    from the camera (the working end).
+    from the camera (the working end, in a laparoscope's geometry; on a monocular reconstruction that is
+    unreliable, and :func:`working_end` orients the capsule from the image).
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 4:
