@@ -45,6 +45,13 @@ def test_a_collider_inside_the_tissue_is_moved_out_towards_the_camera():
                            clearance=0.0, max_push=0.01)
 
 
+def _grey_shaft(g: torch.Generator, n: int, x_lo: float, x_hi: float) -> torch.Tensor:
+    """[n, 3] points on the near half of a shaft of radius 3 mm along x (x_lo..x_hi metres) at 4 cm depth."""
+    s = torch.rand(n, generator=g) * (x_hi - x_lo) + x_lo
+    a = torch.rand(n, generator=g) * torch.pi
+    return torch.stack([s, -0.003 * torch.cos(a), 0.04 - 0.003 * torch.sin(a)], 1)
+
+
 def test_the_collider_is_fitted_to_the_grey_core_not_to_a_leaking_mask():
     from endogsim.gaussians.model import Gaussians
     from endogsim.pipeline.scene_from_recon import instrument_colliders
@@ -52,9 +59,7 @@ def test_the_collider_is_fitted_to_the_grey_core_not_to_a_leaking_mask():
     g = torch.Generator().manual_seed(0)
     # A grey shaft of radius 3 mm along x at 4 cm, seen from above, and a reddish leak of the mask beside it.
     n = 400
-    s = torch.rand(n, generator=g) * 0.03 - 0.015
-    a = torch.rand(n, generator=g) * torch.pi
-    shaft = torch.stack([s, -0.003 * torch.cos(a), 0.04 - 0.003 * torch.sin(a)], 1)
+    shaft = _grey_shaft(g, n, -0.015, 0.015)
     leak = torch.stack([torch.rand(200, generator=g) * 0.03 - 0.015, 0.003 + torch.rand(200, generator=g) * 0.004,
                         torch.full((200,), 0.041)], 1)
     means = torch.cat([shaft, leak])
@@ -98,9 +103,7 @@ def test_the_collider_reaches_the_jaws_beyond_the_grey_shaft():
     # A grey shaft of radius 3 mm along x at 4 cm from x = -60 mm (out of view on the left) to 0, and the
     # jaws, brownish in the light, from 0 to 8 mm: the grey core ends where the jaws begin.
     n = 400
-    s = torch.rand(n, generator=g) * 0.06 - 0.06
-    a = torch.rand(n, generator=g) * torch.pi
-    shaft = torch.stack([s, -0.003 * torch.cos(a), 0.04 - 0.003 * torch.sin(a)], 1)
+    shaft = _grey_shaft(g, n, -0.06, 0.0)
     j = torch.rand(100, generator=g) * 0.008
     jaws = torch.stack([j, 0.002 * (torch.rand(100, generator=g) - 0.5), torch.full((100,), 0.0385)], 1)
     tool = Gaussians.from_points(torch.cat([shaft, jaws]), torch.cat([torch.full((n, 3), 0.6),
