@@ -336,3 +336,85 @@ def test_a_discretisation_error_over_the_whole_search_box_makes_a_parameter_not_
     assert not E.identifiable and "spans the search box" in E.reason
     ident = identified_field(init, params, ivs)
     assert ident[1].E == pytest.approx(3000.0) and ident[1].source == f"identified (E: {NOT_IDENTIFIABLE})"
+
+
+def test_trials_run_several_at_a_time_give_the_same_intervals():
+    """Every slice side and coarse walk is an independent task: run four at a time, the intervals are
+    identical to one at a time, the work really is spread over threads, and the coarse optimum that every
+    parameter's coarse walk starts from is simulated once."""
+    import threading
+    from dataclasses import asdict
+
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E += 0.5
+    best = float(params.log10_E.detach()[0])
+    noise = np.random.default_rng(1).normal(0.0, 1e-3, 12)
+    threads, coarse_at_best, lock = set(), [], threading.Lock()
+
+    def per_frame(trial, centre: float) -> dict[int, float]:
+        with lock:
+            threads.add(threading.current_thread().name)
+        e = float(trial.log10_E.detach()[0]) - centre
+        n = float(trial.nu().detach()[0]) - float(params.nu().detach()[0])
+        return {t: 0.2 + (1.0 + noise[t]) * (e ** 2 + n ** 2) for t in range(12)}
+
+    def coarse(trial):
+        if torch.equal(trial.log10_E, params.log10_E.detach()) and torch.equal(trial.nu_raw, params.nu_raw.detach()):
+            coarse_at_best.append(1)
+        return per_frame(trial, best + 0.1)
+
+    def intervals(workers: int):
+        return parameter_intervals(params, {1: "liver"}, lambda trial: per_frame(trial, best),
+                                   lambda trial: ([1.7], [6.0]), True, coarse_evaluate=coarse, coarse_ratio=1.4,
+                                   workers=workers)
+
+    one = intervals(1)
+    assert len(threads) == 1 and len(coarse_at_best) == 1
+    threads.clear()
+    coarse_at_best.clear()
+    four = intervals(4)
+    assert [asdict(iv) for iv in four] == [asdict(iv) for iv in one]
+    assert len(threads) > 1 and len(coarse_at_best) == 1
+
+
+def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path, monkeypatch):
+    """The same through identification with real simulations (Warp on the CPU from several threads at
+    once): the intervals of ``tiny`` (3 frames) with 3 trials at a time equal those of one at a time."""
+    import endogsim.identify.optimize as optimize
+    from endogsim.identify import IdentifyConfig, run_identify
+    from endogsim.synth import synthesize
+
+    folder = synthesize("tiny", tmp_path / "tiny", frames=3)
+    got = {}
+    for workers in (1, 3):
+        monkeypatch.setattr(optimize, "independent_runs", lambda device, w=workers: w)
+        m = run_identify(folder, tmp_path / f"run{workers}", init="prior",
+                         config=IdentifyConfig(iters=1, intervals=True), video=False)
+        got[workers] = (m["materials"], m["intervals"], m["identifiable"])
+    assert got[3] == got[1]
+    assert got[1][2]["tissue"]["E"]["evidence"]["slice"]  # trials were simulated
+
+
+def test_a_failing_task_stops_the_tasks_not_started_yet():
+    import time
+
+    from endogsim.identify.uncertainty import run_independent
+
+    ran = []
+
+    def slow(k):
+        time.sleep(0.05)
+        ran.append(k)
+        if k == 0:
+            raise RuntimeError("trial 0 failed")
+        return k
+
+    with pytest.raises(RuntimeError, match="trial 0 failed"):
+        run_independent([lambda k=k: slow(k) for k in range(20)], workers=2)
+    time.sleep(0.3)
+    assert len(ran) < 20  # the queue was dropped
+    assert run_independent([lambda k=k: k * k for k in range(5)], workers=3) == [0, 1, 4, 9, 16]

@@ -21,7 +21,7 @@ from typing import Callable
 import torch
 import warp as wp
 
-__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split"]
+__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split", "independent_runs"]
 
 _ready = False
 _POOL: ThreadPoolExecutor | None = None
@@ -82,6 +82,13 @@ def float_vector(n: int):
 def n_bands(device: str, n_items: int, min_items: int = 4096) -> int:
     """Bands a launch over ``n_items`` is split into: one per torch thread on CPU (at most 8), one on CUDA."""
     return 1 if device != "cpu" or n_items < min_items else max(1, min(torch.get_num_threads(), 8))
+
+
+def independent_runs(device: str) -> int:
+    """How many independent simulations to run at a time on ``device`` (e.g. an interval's trials): on a
+    CPU one per torch thread, at most 4 (Warp runs each CPU launch on one core; ``OMP_NUM_THREADS`` or
+    ``torch.set_num_threads`` sets the budget, 1 beside other jobs), on CUDA one (its launches share the GPU)."""
+    return 1 if device != "cpu" else max(1, min(torch.get_num_threads(), 4))
 
 
 def launch_split(kernel, n_items: int, device: str, bands: int, inputs: Callable[[int, int], list]) -> None:

@@ -46,8 +46,12 @@ parameter not identifiable.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -55,8 +59,11 @@ import torch
 from endogsim.errors import EndoGSimError
 from endogsim.materials.field import MaterialParams
 
+T = TypeVar("T")
+
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
            "DiscretisationError", "paired_z", "critical_z", "significant_z", "interval_from_slice", "walk_slice",
+           "walk_side", "slice_from_sides", "run_independent",
            "identifiability", "discretisation_error", "widen", "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
@@ -191,9 +198,27 @@ class Slice:
     failures: list[tuple[float, str]] = field(default_factory=list)
 
 
+def run_independent(tasks: list[Callable[[], T]], workers: int) -> list[T]:
+    """The results of independent ``tasks``, in order, computed ``workers`` at a time in threads.
+
+    An interval's trial simulations are independent of each other, and Warp runs a CPU launch serially
+    and releases the GIL while it runs: on a CPU each simulation uses one core, so two at a time use both
+    cores of a 2-core laptop. The results are the same for any ``workers`` (each task computes what it
+    would alone); the first task's exception, in order, is raised.
+    """
+    if workers <= 1 or len(tasks) <= 1:
+        return [task() for task in tasks]
+    pool = ThreadPoolExecutor(max_workers=min(workers, len(tasks)), thread_name_prefix="endogsim-trial")
+    futures = [pool.submit(task) for task in tasks]
+    try:
+        return [f.result() for f in futures]
+    finally:  # on an error or Ctrl-C, the tasks not started yet are dropped, not run to the end
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
                compare: Callable[[float], tuple[float, float, float]], threshold: float,
-               significance: float | None = None) -> Slice:
+               significance: float | None = None, workers: int = 1) -> Slice:
     """Walk one parameter's slice outward from ``best``: its interval and what it shows on each side.
 
     On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
@@ -208,28 +233,54 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
         compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
         threshold: z above which a value is excluded from the interval (:func:`critical_z`).
         significance: z above which the loss counts as significantly higher (:func:`significant_z`).
+        workers: the two sides are independent: walk them this many at a time (:func:`run_independent`;
+            ``compare`` must then be safe to call from two threads). The result does not depend on it.
     """
-    stop = threshold if significance is None else max(threshold, significance)
-    sides: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
+    stop = _stop_z(threshold, significance)
+    down, up = run_independent([lambda: walk_side(best, steps, box, compare, stop, -1),
+                                lambda: walk_side(best, steps, box, compare, stop, 1)], workers)
+    return slice_from_sides(best, box, threshold, stop, down, up)
+
+
+def _stop_z(threshold: float, significance: float | None) -> float:
+    return threshold if significance is None else max(threshold, significance)
+
+
+#: One side of a slice (:func:`walk_side`): [(value, z)], records [[value, Delta L, SE, z]], failures
+#: [(value, message)].
+SliceSide = tuple[list[tuple[float, float]], list[list[float]], list[tuple[float, str]]]
+
+
+def walk_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
+              compare: Callable[[float], tuple[float, float, float]], stop: float, side: int) -> SliceSide:
+    """One side (-1: down, 1: up) of :func:`walk_slice`: trial values ``best + side * step`` until one's z
+    exceeds ``stop``, the box ends, or a simulation fails."""
+    points: list[tuple[float, float]] = []
     records: list[list[float]] = []
     failures: list[tuple[float, str]] = []
-    for side in (-1, 1):
-        for step in steps:
-            v = min(max(best + side * step, box[0]), box[1])
-            if abs(v - best) < 1e-9 or (sides[side] and abs(v - sides[side][-1][0]) < 1e-9):
-                break  # the box ends here
-            try:
-                delta, se, z = compare(v)
-            except EndoGSimError as e:
-                failures.append((v, str(e)))
-                break
-            sides[side].append((v, z))
-            records.append([v, delta, se, z])
-            if z > stop:
-                break
+    for step in steps:
+        v = min(max(best + side * step, box[0]), box[1])
+        if abs(v - best) < 1e-9 or (points and abs(v - points[-1][0]) < 1e-9):
+            break  # the box ends here
+        try:
+            delta, se, z = compare(v)
+        except EndoGSimError as e:
+            failures.append((v, str(e)))
+            break
+        points.append((v, z))
+        records.append([v, delta, se, z])
+        if z > stop:
+            break
+    return points, records, failures
+
+
+def slice_from_sides(best: float, box: tuple[float, float], threshold: float, stop: float,
+                     down: SliceSide, up: SliceSide) -> Slice:
+    """The :class:`Slice` of the two sides walked by :func:`walk_side` (records and failures down, then up)."""
+    sides = {-1: down[0], 1: up[0]}
     interval, b_lo, b_hi = interval_from_slice(best, sides, box, threshold)
     sig = tuple(any(z > stop for _, z in sides[side]) for side in (-1, 1))
-    return Slice(interval, (b_lo, b_hi), sig, records, failures)
+    return Slice(interval, (b_lo, b_hi), sig, down[1] + up[1], down[2] + up[2])
 
 
 def identifiability(sl: Slice, first_gradient: float | None, span: str, significance: float) -> tuple[bool, str]:
@@ -345,6 +396,7 @@ def parameter_intervals(
     level: float = LEVEL,
     coarse_evaluate: Callable[[MaterialParams], dict[int, float]] | None = None,
     coarse_ratio: float | None = None,
+    workers: int = 1,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -359,11 +411,19 @@ def parameter_intervals(
         coarse_evaluate: like ``evaluate`` at a coarser discretisation (None: no discretisation error is
             measured); its optimum along each slice gives :func:`discretisation_error`, added to the interval.
         coarse_ratio: this discretisation's grid over the coarse one's (> 1; with ``coarse_evaluate``).
+        workers: trial simulations run at a time (:func:`run_independent`; ``evaluate`` and
+            ``coarse_evaluate`` must then be safe to call from several threads). The result does not depend on it.
     """
+    # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
+    # (which build them) are not safe from two threads.
     reference = evaluate(params)
-    coarse_cache: dict[tuple, float] = {}
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
-    out = []
+    stop = _stop_z(threshold, significance)
+    coarse_loss = _shared_loss(coarse_evaluate) if coarse_evaluate is not None else None
+
+    # Every slice's two sides and its coarse walk are independent simulations: run them all, ``workers``
+    # at a time, then assemble each parameter's interval in order.
+    plans, tasks = [], []
     for slot in range(params.log10_E.shape[0]):
         oids = [o for o in params.object_ids if params.slot(o) == slot]
         name = ", ".join(object_names.get(o, str(o)) for o in oids)
@@ -376,50 +436,78 @@ def parameter_intervals(
             def compare(v: float, slot=slot, what=what) -> tuple[float, float, float]:
                 return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
 
-            sl = walk_slice(best, steps, box, compare, threshold, significance)
-            (lo, hi), records = sl.interval, sl.records
-            g0 = None
-            if first_gradients is not None:
-                g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
-            ok, reason = identifiability(sl, g0, "the search box", significance)
-            to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
-            for v, message in sl.failures:
-                reason += f"; the simulation at {what} = {to_value(v):.4g} failed ({message}), which ended the slice there"
-            statistical, disc = None, None
-            if coarse_evaluate is not None:
-                def coarse_loss(v: float, slot=slot, what=what) -> float:
-                    trial = _with_value(params, slot, what, v)
-                    key = (tuple(trial.log10_E.tolist()), tuple(trial.nu_raw.tolist()))
-                    if key not in coarse_cache:  # the optimum itself starts every parameter's walk
-                        coarse_cache[key] = float(sum(coarse_evaluate(trial).values()))
-                    return coarse_cache[key]
-
+            def coarse_walk(slot=slot, what=what, steps=steps, box=box, best=best):
                 try:
-                    err = discretisation_error(best, steps, box, coarse_loss, float(coarse_ratio))
-                except EndoGSimError as e:  # no coarse optimum: the interval stays the statistical one, and says so
-                    reason += f"; the discretisation error was not measured (the coarser simulation failed: {e})"
-                else:
-                    statistical = [to_value(lo), to_value(hi)]
-                    lo, hi = widen([lo, hi], best, err.half_width, box)
-                    disc = asdict(err)
-                    disc["coarse_best"] = to_value(err.coarse_best)
-                    disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
-                    if ok and lo <= box[0] + 1e-9 and hi >= box[1] - 1e-9:
-                        # The video determines it at this discretisation, but the discretisation itself does
-                        # not: an interval over the whole search box is "not identifiable" (issue 21).
-                        ok = False
-                        reason = (f"the loss rises significantly on both sides, but the discretisation's error "
-                                  f"(the optimum moves {err.shift:+.3g} on a grid {err.ratio:.2f}x coarser) spans "
-                                  "the search box")
-            out.append(ParameterInterval(
-                object_id=oids[0], name=name, parameter=what, best=to_value(best),
-                interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
-                identifiable=ok, reason=reason,
-                slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
-                critical_z=threshold if math.isfinite(threshold) else None,
-                significant_z=significance if math.isfinite(significance) else None,
-                statistical_interval=statistical, discretisation=disc))
+                    return discretisation_error(best, steps, box,
+                                                lambda v: coarse_loss(_with_value(params, slot, what, v)),
+                                                float(coarse_ratio))
+                except EndoGSimError as e:  # no coarse optimum: the interval stays the statistical one
+                    return e
+
+            plans.append((slot, oids, name, what, steps, box, best))
+            tasks += [partial(walk_side, best, steps, box, compare, stop, -1),
+                      partial(walk_side, best, steps, box, compare, stop, 1),
+                      coarse_walk if coarse_loss is not None else (lambda: None)]
+    results = run_independent(tasks, workers)
+
+    out = []
+    for k, (slot, oids, name, what, steps, box, best) in enumerate(plans):
+        down, up, err = results[3 * k: 3 * k + 3]
+        sl = slice_from_sides(best, box, threshold, stop, down, up)
+        (lo, hi), records = sl.interval, sl.records
+        g0 = None
+        if first_gradients is not None:
+            g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
+        ok, reason = identifiability(sl, g0, "the search box", significance)
+        to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+        for v, message in sl.failures:
+            reason += f"; the simulation at {what} = {to_value(v):.4g} failed ({message}), which ended the slice there"
+        statistical, disc = None, None
+        if isinstance(err, EndoGSimError):
+            reason += f"; the discretisation error was not measured (the coarser simulation failed: {err})"
+        elif err is not None:
+            statistical = [to_value(lo), to_value(hi)]
+            lo, hi = widen([lo, hi], best, err.half_width, box)
+            disc = asdict(err)
+            disc["coarse_best"] = to_value(err.coarse_best)
+            disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
+            if ok and lo <= box[0] + 1e-9 and hi >= box[1] - 1e-9:
+                # The video determines it at this discretisation, but the discretisation itself does
+                # not: an interval over the whole search box is "not identifiable" (issue 21).
+                ok = False
+                reason = (f"the loss rises significantly on both sides, but the discretisation's error "
+                          f"(the optimum moves {err.shift:+.3g} on a grid {err.ratio:.2f}x coarser) spans "
+                          "the search box")
+        out.append(ParameterInterval(
+            object_id=oids[0], name=name, parameter=what, best=to_value(best),
+            interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
+            identifiable=ok, reason=reason,
+            slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
+            critical_z=threshold if math.isfinite(threshold) else None,
+            significant_z=significance if math.isfinite(significance) else None,
+            statistical_interval=statistical, discretisation=disc))
     return out
+
+
+def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]]) -> Callable[[MaterialParams], float]:
+    """``sum(evaluate(trial).values())``, each trial computed once, whichever thread asks first (the others
+    wait for it): every parameter's coarse walk starts at the optimum."""
+    lock, cache = threading.Lock(), {}
+
+    def loss(trial: MaterialParams) -> float:
+        key = (tuple(trial.log10_E.tolist()), tuple(trial.nu_raw.tolist()))
+        with lock:
+            future, owner = cache.get(key), key not in cache
+            if owner:
+                future = cache[key] = Future()
+        if owner:
+            try:
+                future.set_result(float(sum(evaluate(trial).values())))
+            except BaseException as e:  # every waiter gets the same failure
+                future.set_exception(e)
+        return future.result()
+
+    return loss
 
 
 def _with_value(params: MaterialParams, slot: int, what: str, value: float) -> MaterialParams:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -215,11 +216,13 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.identify import run_identify
     from endogsim.identify.loss import make_observations, observed_flow
     from endogsim.identify.report import comparison_frames
+    from endogsim.identify.uncertainty import run_independent
     from endogsim.io.runfolder import run_folder
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import run_pipeline
     from endogsim.scene.folder import load_sim_scene
     from endogsim.scene.forward import render_sequence
+    from endogsim.warp_runtime import independent_runs
 
     cfg = config or ValidateConfig()
     data, out = Path(data), Path(out)
@@ -252,15 +255,23 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         shown = list(range(T_train - 1, T))  # the last training frame starts the first held-out flow pair
         test = [t for t in shown if t >= T_train]
         renders: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        with torch.no_grad():
-            for name, fld in (("prediction", calibrated), ("prior", prior)):
+
+        def simulate_and_render(fld: MaterialField):
+            with torch.no_grad():  # grad mode is per thread
                 res = scene.simulator().simulate(fld.simulator_materials())
                 r = render_sequence(scene, res.positions, res.F, cam, frames=shown)
-                renders[name] = (r.rgb.numpy(), r.flow.numpy())
-                if name == "prediction":
-                    held = res.positions.clone(), res.F.clone()
-                    held[0][T_train - 1:] = res.positions[T_train - 1]
-                    held[1][T_train - 1:] = res.F[T_train - 1]
+            return res, (r.rgb.numpy(), r.flow.numpy())
+
+        # The two simulations are independent: side by side where there are cores for both (the simulator
+        # is built first, once).
+        _ = scene.simulator().engine
+        (res, renders["prediction"]), (_, renders["prior"]) = run_independent(
+            [partial(simulate_and_render, calibrated), partial(simulate_and_render, prior)],
+            independent_runs(scene.mpm.device))
+        with torch.no_grad():
+            held = res.positions.clone(), res.F.clone()
+            held[0][T_train - 1:] = res.positions[T_train - 1]
+            held[1][T_train - 1:] = res.F[T_train - 1]
             r = render_sequence(scene, held[0], held[1], cam, frames=shown)
             renders["zero_motion"] = (r.rgb.numpy(), r.flow.numpy())
         renders["reconstruction"] = _reconstruction_renders(recon_dir, cam, shown, T)
