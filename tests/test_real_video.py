@@ -93,6 +93,7 @@ def test_the_working_end_is_the_one_inside_the_view_not_the_one_farther_in_depth
     # Both ends equally deep inside: the fitted order stands.
     a, b = np.array([-0.01, 0.0, 0.05]), np.array([0.01, 0.0, 0.05])
     assert working_end(a, b, K, rect)[2] == "depth" and np.array_equal(working_end(a, b, K, rect)[0], a)
+    assert working_end(-a, -b, K, rect)[2] == "depth"  # both behind the camera: nothing to see
 
 
 def test_the_collider_reaches_the_jaws_beyond_the_grey_shaft():
@@ -113,7 +114,7 @@ def test_the_collider_reaches_the_jaws_beyond_the_grey_shaft():
     fit = instrument_colliders(tool, [7], _sheet(z=0.05), dx=0.002, K=K, field=np.ones((240, 320), bool))[0]
     assert fit.oriented == "image" and fit.core == n
     assert 0.0075 < fit.tip[0] < 0.0085 and fit.end[0] < -0.055  # the tip at the jaws' end, the end off view
-    assert fit.to_json()["working_end_from"] == "image"
+    assert fit.to_json()["working_end_from"] == "image" and 0.008 < fit.jaws < 0.0105  # 8 mm and the core's end
 
 
 # ------------------------------------------------------------------------------------------------- coverage

@@ -15,17 +15,21 @@ import functools
 import os
 import sys
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
+from typing import Callable, TypeVar
 
 import torch
 import warp as wp
 
-__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split", "independent_runs"]
+__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split", "independent_runs",
+           "run_independent", "check_cancelled", "Cancelled"]
 
 _ready = False
 _POOL: ThreadPoolExecutor | None = None
 _LAUNCHED: set = set()  # (kernel, device, argument types) launched once already
+_FIRST_LAUNCH = threading.Lock()  # a first launch (and the pool) from one thread at a time
+R = TypeVar("R")
 
 
 def init_warp() -> None:
@@ -87,8 +91,58 @@ def n_bands(device: str, n_items: int, min_items: int = 4096) -> int:
 def independent_runs(device: str) -> int:
     """How many independent simulations to run at a time on ``device`` (e.g. an interval's trials): on a
     CPU one per torch thread, at most 4 (Warp runs each CPU launch on one core; ``OMP_NUM_THREADS`` or
-    ``torch.set_num_threads`` sets the budget, 1 beside other jobs), on CUDA one (its launches share the GPU)."""
+    ``torch.set_num_threads`` is the budget: set it to 1 when timing beside other jobs), on CUDA one (its
+    launches share the GPU)."""
     return 1 if device != "cpu" else max(1, min(torch.get_num_threads(), 4))
+
+
+class Cancelled(BaseException):
+    """Raised in a task of :func:`run_independent` that starts work after another task failed (a
+    ``BaseException``: no handler of the tasks' own errors catches it)."""
+
+
+def run_independent(tasks: list[Callable[[], R]], workers: int, cancel: threading.Event | None = None) -> list[R]:
+    """The results of independent ``tasks``, in order, computed ``workers`` at a time in threads.
+
+    Warp runs a CPU launch serially and releases the GIL while it runs, so on a CPU each simulation keeps
+    one core busy and two at a time use both cores of a 2-core laptop (renders split over the same cores:
+    :func:`launch_split`). The results are the same for any ``workers``: each task computes what it would
+    alone, and an error raised is that of the first task, in order, that failed. When a task fails, the
+    tasks not started yet are dropped and ``cancel`` (if given) is set, for long tasks to stop between
+    their steps (:func:`check_cancelled`); a running task cannot be interrupted (native code), so its step
+    ends first. Ctrl-C returns at once.
+    """
+    if workers <= 1 or len(tasks) <= 1:
+        return [task() for task in tasks]
+    cancel = cancel if cancel is not None else threading.Event()
+    pool = ThreadPoolExecutor(max_workers=min(workers, len(tasks)), thread_name_prefix="endogsim-task")
+    futures = [pool.submit(task) for task in tasks]
+
+    def stop_on_error(f) -> None:
+        if not f.cancelled() and f.exception() is not None:
+            cancel.set()
+            for g in futures:
+                g.cancel()  # the ones not started (a running one is not cancellable)
+
+    for f in futures:
+        f.add_done_callback(stop_on_error)
+    try:
+        wait(futures)
+    except BaseException:  # Ctrl-C in the caller's thread
+        cancel.set()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=False)
+    errors = [f.exception() for f in futures if not f.cancelled() and f.exception() is not None]
+    if errors:
+        raise next((e for e in errors if not isinstance(e, Cancelled)), errors[0])
+    return [f.result() for f in futures]
+
+
+def check_cancelled(cancel: threading.Event | None) -> None:
+    """Raise :class:`Cancelled` when ``cancel`` is set (a task of :func:`run_independent` whose siblings failed)."""
+    if cancel is not None and cancel.is_set():
+        raise Cancelled()
 
 
 def launch_split(kernel, n_items: int, device: str, bands: int, inputs: Callable[[int, int], list]) -> None:
@@ -103,13 +157,19 @@ def launch_split(kernel, n_items: int, device: str, bands: int, inputs: Callable
     dims = [-(-(n_items - b) // bands) for b in range(bands)]
     # Warp builds a kernel overload on its first launch, which is not safe from several threads at once.
     key = (kernel.key, device, tuple(type(a) for a in args[0]), tuple(getattr(a, "dtype", None) for a in args[0]))
-    if bands == 1 or key not in _LAUNCHED:
+    if bands == 1:
         for dim, a in zip(dims, args):
             wp.launch(kernel, dim=dim, inputs=a, device=device)
-        _LAUNCHED.add(key)
         return
-    if _POOL is None or _POOL._max_workers < bands:
-        _POOL = ThreadPoolExecutor(max_workers=bands, thread_name_prefix="endogsim-warp")
-    jobs = [_POOL.submit(wp.launch, kernel, dim=dim, inputs=a, device=device) for dim, a in zip(dims, args)]
+    with _FIRST_LAUNCH:  # several callers (run_independent's tasks) may launch at once
+        if key not in _LAUNCHED:
+            for dim, a in zip(dims, args):
+                wp.launch(kernel, dim=dim, inputs=a, device=device)
+            _LAUNCHED.add(key)
+            return
+        if _POOL is None or _POOL._max_workers < bands:
+            _POOL = ThreadPoolExecutor(max_workers=bands, thread_name_prefix="endogsim-warp")
+        pool = _POOL
+    jobs = [pool.submit(wp.launch, kernel, dim=dim, inputs=a, device=device) for dim, a in zip(dims, args)]
     for job in jobs:
         job.result()

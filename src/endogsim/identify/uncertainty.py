@@ -48,22 +48,20 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from functools import partial
-from typing import TypeVar
 
 import numpy as np
 import torch
 
 from endogsim.errors import EndoGSimError
 from endogsim.materials.field import MaterialParams
-
-T = TypeVar("T")
+from endogsim.warp_runtime import check_cancelled, run_independent
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
            "DiscretisationError", "paired_z", "critical_z", "significant_z", "interval_from_slice", "walk_slice",
-           "walk_side", "slice_from_sides", "run_independent",
+           "walk_side", "slice_from_sides",
            "identifiability", "discretisation_error", "widen", "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
@@ -198,24 +196,6 @@ class Slice:
     failures: list[tuple[float, str]] = field(default_factory=list)
 
 
-def run_independent(tasks: list[Callable[[], T]], workers: int) -> list[T]:
-    """The results of independent ``tasks``, in order, computed ``workers`` at a time in threads.
-
-    An interval's trial simulations are independent of each other, and Warp runs a CPU launch serially
-    and releases the GIL while it runs: on a CPU each simulation uses one core, so two at a time use both
-    cores of a 2-core laptop. The results are the same for any ``workers`` (each task computes what it
-    would alone); the first task's exception, in order, is raised.
-    """
-    if workers <= 1 or len(tasks) <= 1:
-        return [task() for task in tasks]
-    pool = ThreadPoolExecutor(max_workers=min(workers, len(tasks)), thread_name_prefix="endogsim-trial")
-    futures = [pool.submit(task) for task in tasks]
-    try:
-        return [f.result() for f in futures]
-    finally:  # on an error or Ctrl-C, the tasks not started yet are dropped, not run to the end
-        pool.shutdown(wait=False, cancel_futures=True)
-
-
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
                compare: Callable[[float], tuple[float, float, float]], threshold: float,
                significance: float | None = None, workers: int = 1) -> Slice:
@@ -233,7 +213,8 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
         compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
         threshold: z above which a value is excluded from the interval (:func:`critical_z`).
         significance: z above which the loss counts as significantly higher (:func:`significant_z`).
-        workers: the two sides are independent: walk them this many at a time (:func:`run_independent`;
+        workers: the two sides are independent: walk them this many at a time
+            (:func:`~endogsim.warp_runtime.run_independent`;
             ``compare`` must then be safe to call from two threads). The result does not depend on it.
     """
     stop = _stop_z(threshold, significance)
@@ -411,7 +392,7 @@ def parameter_intervals(
         coarse_evaluate: like ``evaluate`` at a coarser discretisation (None: no discretisation error is
             measured); its optimum along each slice gives :func:`discretisation_error`, added to the interval.
         coarse_ratio: this discretisation's grid over the coarse one's (> 1; with ``coarse_evaluate``).
-        workers: trial simulations run at a time (:func:`run_independent`; ``evaluate`` and
+        workers: trial simulations run at a time (:func:`~endogsim.warp_runtime.run_independent`; ``evaluate`` and
             ``coarse_evaluate`` must then be safe to call from several threads). The result does not depend on it.
     """
     # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
@@ -419,7 +400,14 @@ def parameter_intervals(
     reference = evaluate(params)
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     stop = _stop_z(threshold, significance)
-    coarse_loss = _shared_loss(coarse_evaluate) if coarse_evaluate is not None else None
+    cancel = threading.Event()  # set when a trial fails: the other walks stop starting trials
+    coarse_loss = None
+    if coarse_evaluate is not None:
+        coarse_loss = _shared_loss(coarse_evaluate, cancel)
+        try:  # every coarse walk starts here; alone, it also builds the coarse simulator once
+            coarse_loss(params)
+        except EndoGSimError:
+            pass  # each walk meets the same failure (cached) and says so
 
     # Every slice's two sides and its coarse walk are independent simulations: run them all, ``workers``
     # at a time, then assemble each parameter's interval in order.
@@ -434,21 +422,26 @@ def parameter_intervals(
             specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
         for what, steps, box, best in specs:
             def compare(v: float, slot=slot, what=what) -> tuple[float, float, float]:
+                check_cancelled(cancel)
                 return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
 
-            def coarse_walk(slot=slot, what=what, steps=steps, box=box, best=best):
+            def coarse_walk(slot=slot, what=what, steps=steps, box=box,
+                            best=best) -> DiscretisationError | EndoGSimError:
+                """The parameter's coarse optimum, or the failure that left none (the interval then stays
+                the statistical one). The optimum itself is ``params`` exactly (nu's round trip through
+                its raw value would change the last bits, and simulate it again)."""
                 try:
-                    return discretisation_error(best, steps, box,
-                                                lambda v: coarse_loss(_with_value(params, slot, what, v)),
-                                                float(coarse_ratio))
-                except EndoGSimError as e:  # no coarse optimum: the interval stays the statistical one
+                    return discretisation_error(
+                        best, steps, box, lambda v: coarse_loss(params if v == best else _with_value(params, slot, what, v)),
+                        float(coarse_ratio))
+                except EndoGSimError as e:
                     return e
 
             plans.append((slot, oids, name, what, steps, box, best))
             tasks += [partial(walk_side, best, steps, box, compare, stop, -1),
                       partial(walk_side, best, steps, box, compare, stop, 1),
                       coarse_walk if coarse_loss is not None else (lambda: None)]
-    results = run_independent(tasks, workers)
+    results = run_independent(tasks, workers, cancel)
 
     out = []
     for k, (slot, oids, name, what, steps, box, best) in enumerate(plans):
@@ -489,7 +482,8 @@ def parameter_intervals(
     return out
 
 
-def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]]) -> Callable[[MaterialParams], float]:
+def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]],
+                 cancel: threading.Event | None = None) -> Callable[[MaterialParams], float]:
     """``sum(evaluate(trial).values())``, each trial computed once, whichever thread asks first (the others
     wait for it): every parameter's coarse walk starts at the optimum."""
     lock, cache = threading.Lock(), {}
@@ -502,6 +496,7 @@ def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]]) -> Call
                 future = cache[key] = Future()
         if owner:
             try:
+                check_cancelled(cancel)
                 future.set_result(float(sum(evaluate(trial).values())))
             except BaseException as e:  # every waiter gets the same failure
                 future.set_exception(e)

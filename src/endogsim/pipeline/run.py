@@ -132,7 +132,7 @@ def run_pipeline(
 def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | None,
                 on_stage: Callable[[str, str], None] | None, stop_after: str | None, fresh: bool) -> dict:
     state_path = out / "run.json"
-    state = {"stages": {}} if fresh else _load_state(state_path)
+    state = {"stages": {}} if fresh else _outputs_here(_load_state(state_path), out)
     state.update({"data": str(data), "truth": str(truth) if truth else None, "config": asdict(cfg)})
     # What each stage is made from besides the earlier stages' outputs (files by content digest).
     options = {"reconstruct": {"data": tree_digest(data, exclude=out), "recon": asdict(cfg.recon)},
@@ -209,10 +209,15 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
         stage(name, steps[name])
         if stop_after == name:
             break
-    # Where the outputs are now: a run folder moved after it finished resumes with every stage skipped,
-    # and the paths stored then would name the old place.
+    write_json_atomic(state_path, state)  # a resume that skipped every stage names the outputs where they are
+    return state
+
+
+def _outputs_here(state: dict, out: Path) -> dict:
+    """``state`` (run.json) with the stored paths of the stages' outputs under the run folder ``out``: a run
+    folder moved after it finished resumes with its stages skipped, and the paths stored then name the old
+    place."""
     for name, key in (("scenario", "scene"), ("report", "report")):
         if key in state["stages"].get(name, {}):
             state["stages"][name][key] = str(out / OUTPUTS[name])
-    write_json_atomic(state_path, state)
     return state

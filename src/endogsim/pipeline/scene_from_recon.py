@@ -121,6 +121,7 @@ class ToolFit:
         pushed: distance (metres) the capsule was moved towards the camera out of the tissue.
         inside: tissue particles inside the capsule as fitted (before the push).
         oriented: how its working end (``tip``) was found: "image" (:func:`working_end`) or "depth".
+        jaws: how far (metres) the working end was extended beyond the grey core (:func:`extend_to_jaws`).
     """
 
     object_id: int
@@ -132,11 +133,13 @@ class ToolFit:
     pushed: float = 0.0
     inside: int = 0
     oriented: str = "depth"
+    jaws: float = 0.0
 
     def to_json(self) -> dict:
         return {"object_id": self.object_id, "tip": self.tip.tolist(), "end": self.end.tolist(), "radius": self.radius,
                 "gaussians": self.gaussians, "core_gaussians": self.core, "pushed_m": self.pushed,
-                "tissue_particles_inside_before_push": self.inside, "working_end_from": self.oriented}
+                "tissue_particles_inside_before_push": self.inside, "working_end_from": self.oriented,
+                "jaws_extension_m": self.jaws}
 
 
 def fit_tool_capsule(points: np.ndarray, camera_center: np.ndarray | None = None,
@@ -191,36 +194,58 @@ def working_end(tip: np.ndarray, end: np.ndarray, K: np.ndarray, field: np.ndarr
     import cv2
 
     H, W = field.shape
-    # Distance (px) to the nearest pixel outside the field, the image's own border counted as outside.
-    inside = cv2.distanceTransform(np.pad(field, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    # Signed distance (px) to the field's edge, the image's own border counted as one: positive inside,
+    # negative outside (the black around an endoscope's circle).
+    pad = np.pad(field, 1)
+    signed = (cv2.distanceTransform(pad.astype(np.uint8), cv2.DIST_L2, 5)
+              - cv2.distanceTransform((~pad).astype(np.uint8), cv2.DIST_L2, 5))[1:-1, 1:-1]
 
     def depth_in_view(p: np.ndarray) -> float:
         if p[2] <= 0:
-            return -math.inf
+            return -math.inf  # behind the camera
         u, v = (K @ p)[:2] / (K @ p)[2]
-        if 0 <= u < W and 0 <= v < H:
-            return float(inside[int(v), int(u)])
-        return -float(np.hypot(max(-u, 0.0, u - W), max(-v, 0.0, v - H)))  # outside the image: how far
+        off = float(np.hypot(max(-u, 0.0, u - (W - 1)), max(-v, 0.0, v - (H - 1))))  # beyond the image
+        return float(signed[int(np.clip(v, 0, H - 1)), int(np.clip(u, 0, W - 1))]) - off
 
     d_tip, d_end = depth_in_view(np.asarray(tip, float)), depth_in_view(np.asarray(end, float))
-    if abs(d_tip - d_end) < 2.0:
+    if not abs(d_tip - d_end) >= 2.0:  # as deep inside, or both behind the camera (NaN)
         return tip, end, "depth"
     return (tip, end, "image") if d_tip > d_end else (end, tip, "image")
 
 
+#: The farthest a capsule is extended beyond its grey core to reach the jaws (metres): a grasper's jaws
+#: are 10-20 mm long; more is a floater or the mask leaking along the axis.
+MAX_JAWS = 0.015
+
+
 def extend_to_jaws(tip: np.ndarray, end: np.ndarray, radius: float, points: np.ndarray) -> np.ndarray:
-    """The working end moved along the axis to the farthest of the instrument's Gaussians ``points``
-    [N, 3] within two radii of the axis (the 99th percentile): a capsule fitted to the grey core of the
-    shaft stops where the jaws begin (CholecSeg8K's grasper: 8 mm short), and the jaws are what grasps.
-    Never shortened. Returns the new tip [3]."""
-    axis = (np.asarray(tip, float) - end) / max(float(np.linalg.norm(np.asarray(tip, float) - end)), 1e-12)
+    """The working end moved along the axis to the farthest of the instrument's Gaussians: a capsule fitted
+    to the grey core of the shaft stops where the jaws begin (CholecSeg8K's grasper: 8 mm short), and the
+    jaws are what grasps. Never shortened, never by more than ``MAX_JAWS``.
+
+    Args:
+        tip, end: [3] the capsule's working end and other end (metres).
+        radius: the capsule's radius (metres); Gaussians within 2 radii of the axis count.
+        points: [N, 3] the instrument's opaque Gaussians (metres); the 99th percentile along the axis is
+            its reach (a few floaters do not count).
+    Returns:
+        the new tip [3] (metres).
+    """
+    tip, end = np.asarray(tip, float), np.asarray(end, float)
+    length = float(np.linalg.norm(tip - end))
+    axis = (tip - end) / max(length, 1e-12)
     s = (np.asarray(points, float) - end) @ axis
     near = _segment_distance(points, end, end + axis * max(s.max(), 0.0)) <= 2 * radius
     reach = float(np.percentile(s[near], 99)) if near.any() else 0.0
-    return end + axis * max(reach, float(np.linalg.norm(np.asarray(tip, float) - end)))
+    return end + axis * min(max(reach, length), length + MAX_JAWS)
 
 
-def grey_core(g: Gaussians, max_saturation: float, min_opacity: float = 0.3, min_count: int = 20) -> torch.Tensor:
+#: Gaussians at least this opaque count as an instrument's surface (its grey core, its jaws).
+GREY_MIN_OPACITY = 0.3
+
+
+def grey_core(g: Gaussians, max_saturation: float, min_opacity: float = GREY_MIN_OPACITY,
+              min_count: int = 20) -> torch.Tensor:
     """[N] bool: the opaque, low-saturation (metal) Gaussians of ``g``; all opaque ones when fewer than
     ``min_count`` are grey (an instrument painted or lit in colour)."""
     rgb = g.colors_dc.detach().clamp(0, 1)
@@ -304,16 +329,18 @@ def instrument_colliders(g0: Gaussians, tool_ids: list[int], tissue_particles: n
             warnings.warn(f"instrument {oid}: its Gaussians measure a radius of {measured * 1e3:.1f} mm; the collider "
                           f"takes {radius * 1e3:.1f} mm, the nearest standard instrument size (the depth of a "
                           "monocular reconstruction scales every size)", DataWarning, stacklevel=2)
-        oriented = "depth"
+        oriented, jaws = "depth", 0.0
         if K is not None and field is not None:
             tip, end, oriented = working_end(tip, end, K, field)
-            tip = extend_to_jaws(tip, end, radius, tool.means.detach().double().numpy())
+            opaque = tool.opacities.detach() >= GREY_MIN_OPACITY
+            core_tip, tip = tip, extend_to_jaws(tip, end, radius, tool.means[opaque].detach().double().numpy())
+            jaws = float(np.linalg.norm(tip - core_tip))
         tip, end, pushed, inside = push_out_of_tissue(tip, end, radius, tissue_particles, scenario.clearance * dx)
         if inside:
             warnings.warn(f"instrument {oid}: its fitted collider (radius {radius * 1e3:.1f} mm) held {inside} tissue "
                           f"particles at frame 0; moved {pushed * 1e3:.2f} mm towards the camera out of the tissue",
                           DataWarning, stacklevel=2)
-        fits.append(ToolFit(oid, tip, end, radius, int(sel.sum()), int(core.sum()), pushed, inside, oriented))
+        fits.append(ToolFit(oid, tip, end, radius, int(sel.sum()), int(core.sum()), pushed, inside, oriented, jaws))
     return fits
 
 

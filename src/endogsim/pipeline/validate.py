@@ -216,13 +216,12 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.identify import run_identify
     from endogsim.identify.loss import make_observations, observed_flow
     from endogsim.identify.report import comparison_frames
-    from endogsim.identify.uncertainty import run_independent
     from endogsim.io.runfolder import run_folder
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import run_pipeline
     from endogsim.scene.folder import load_sim_scene
     from endogsim.scene.forward import render_sequence
-    from endogsim.warp_runtime import independent_runs
+    from endogsim.warp_runtime import independent_runs, run_independent
 
     cfg = config or ValidateConfig()
     data, out = Path(data), Path(out)
@@ -256,17 +255,18 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         test = [t for t in shown if t >= T_train]
         renders: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
-        def simulate_and_render(fld: MaterialField):
+        def simulate_and_render(fld: MaterialField, keep: bool):
+            """(the simulation if ``keep``, its renders and flow of ``shown``)."""
             with torch.no_grad():  # grad mode is per thread
                 res = scene.simulator().simulate(fld.simulator_materials())
                 r = render_sequence(scene, res.positions, res.F, cam, frames=shown)
-            return res, (r.rgb.numpy(), r.flow.numpy())
+            return (res if keep else None), (r.rgb.numpy(), r.flow.numpy())
 
-        # The two simulations are independent: side by side where there are cores for both (the simulator
-        # is built first, once).
-        _ = scene.simulator().engine
+        # The two simulations are independent: side by side where there are cores for both. The simulator is
+        # built first, once; every kernel was launched (built) by the calibration's final evaluation.
+        scene.simulator().engine  # noqa: B018 - builds it
         (res, renders["prediction"]), (_, renders["prior"]) = run_independent(
-            [partial(simulate_and_render, calibrated), partial(simulate_and_render, prior)],
+            [partial(simulate_and_render, calibrated, True), partial(simulate_and_render, prior, False)],
             independent_runs(scene.mpm.device))
         with torch.no_grad():
             held = res.positions.clone(), res.F.clone()
