@@ -297,6 +297,8 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     assert json.loads((run / "validate" / "validate.json").read_text())["train_frames"] == 4
     html = (run / "report.html").read_text()
     assert "Held-out validation" in html and "Identifiability" in html and "Tissue coverage" in html
+    # how the instrument was fitted, and frame 0 with its capsule drawn
+    assert "<h2>Instruments</h2>" in html and 'alt="instruments at frame 0"' in html and "working end from" in html
     # The prior baseline is a plain simulation of the scene with the initial materials, scored the same way.
     p = load_sim_scene(run / "scene")
     fld, _ = initial_field(p, "prior")

@@ -82,6 +82,7 @@ def test_report_is_well_formed_and_links_exist(run_with_simulation, tmp_path, mo
     assert "prior" in text and "E range" in text and "–" in text
     assert "FID: n/a (no Inception weights" in text
     assert "EPE (px)" in text and "PSNR (dB)" in text
+    assert "<h2>Instruments</h2>" not in text  # a synthesized scene has no fitted colliders to show
 
 
 def test_report_cli(run_with_simulation):

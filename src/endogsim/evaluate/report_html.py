@@ -196,6 +196,61 @@ def _validation_section(folder: Path, rel) -> list[str]:
     return out
 
 
+#: Colours (RGB) of the instruments drawn in the report's "Instruments" still, in order.
+_TOOL_COLOURS = [(255, 60, 60), (60, 140, 255), (60, 220, 90), (255, 200, 40), (220, 80, 255)]
+
+
+def _instruments_section(metrics: dict, run: Path) -> list[str]:
+    """The instruments of a real video's scene (``scene.json`` ``colliders``, written by
+    ``pipeline/scene_from_recon.py``): how each capsule was fitted, and frame 0 with each capsule's axis and
+    working end (its tip, where jaws bite) drawn; nothing for a scene without fitted colliders (a benchmark
+    scene takes its ground truth's)."""
+    import cv2
+
+    from endogsim.io.images import read_rgb
+
+    named, relative = metrics.get("folder"), metrics.get("folder_from_run")
+    folder = next((Path(f) for f in (named, relative and run / relative) if f and (Path(f) / "scene.json").is_file()),
+                  None)
+    doc = _load_json(folder / "scene.json") if folder is not None else None
+    if not doc or not doc.get("colliders"):
+        return []
+    names = {o["id"]: o.get("name", str(o["id"])) for o in doc.get("objects", [])}
+    tools = {t["object_id"]: t for t in doc.get("scenario", {}).get("tools", [])}
+    K = np.asarray(doc["camera"]["K"], float)
+    rows, still = [], None
+    image = folder / doc.get("files", {}).get("images", "images/frame-%06d.color.png").replace("%06d", "000000")
+    if image.is_file():
+        still = np.round(read_rgb(image) * 255.0).astype(np.uint8)
+    for k, c in enumerate(doc["colliders"]):
+        tip, end = np.asarray(c["tip"], float), np.asarray(c["end"], float)
+        tool = tools.get(c["object_id"], {})
+        seen = tool.get("visible")
+        rows.append([names.get(c["object_id"], c["object_id"]), f"{c['radius'] * 1e3:.2f}",
+                     f"{np.linalg.norm(tip - end) * 1e3:.1f}", c.get("working_end_from", "depth"),
+                     None if c.get("jaws_extension_m") is None else f"{c['jaws_extension_m'] * 1e3:.1f}",
+                     f"{c.get('pushed_m', 0.0) * 1e3:.2f}",
+                     c.get("tissue_particles_inside_before_push", 0), tool.get("contact", "sticky"),
+                     f"{sum(map(bool, seen))} of {len(seen)}" if seen else "all"])
+        if still is not None and tip[2] > 0 and end[2] > 0:
+            (u0, v0), (u1, v1) = ((K @ p)[:2] / (K @ p)[2] for p in (end, tip))
+            colour = _TOOL_COLOURS[k % len(_TOOL_COLOURS)]
+            cv2.line(still, (int(u0), int(v0)), (int(u1), int(v1)), colour, 2, cv2.LINE_AA)
+            cv2.circle(still, (int(u1), int(v1)), 5, colour, -1, cv2.LINE_AA)
+    out = ["<h2>Instruments</h2>" + _table(
+        ["instrument", "radius (mm)", "length (mm)", "working end from", "extended to the jaws (mm)",
+         "moved out of the tissue (mm)", "tissue particles inside as fitted", "contact", "frames seen"], rows)]
+    if still is not None:
+        out.append(f'<figure><img alt="instruments at frame 0" src="{_png_data_uri(still)}"><figcaption>frame 0: '
+                   "each instrument's capsule axis, the dot on its working end (colours in the table's order)"
+                   "</figcaption></figure>")
+    out.append('<p class="note">One capsule collider per instrument, fitted to its grey core at frame 0 and moved '
+               "with its reconstructed rigid motion; its working end is the end deeper inside the field of view "
+               "(\"image\"; \"depth\" where both ends are as deep), extended along the axis to the jaws; a "
+               "capsule that held tissue is moved towards the camera (docs/REAL_VIDEO.md section 2).</p>")
+    return out
+
+
 def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike] | tuple = (),
                  out: str | os.PathLike | None = None, fid_weights: str | os.PathLike | None = None,
                  title: str | None = None, validation: str | os.PathLike | None = None) -> Path:
@@ -310,6 +365,8 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
         parts.append(f"<h2>Tissue coverage</h2><p>largest drop of the rendered tissue coverage: "
                      f"{100 * w['drop']:.2f}% of the footprint beyond what the video shows{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
                      "drop means the simulated tissue tore, and the run fails)</p>")
+
+    parts += _instruments_section(metrics, run)
 
     if validation is not None:
         parts += _validation_section(Path(validation), rel)
