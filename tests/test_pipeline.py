@@ -97,7 +97,8 @@ def test_run_resumes_after_an_interrupted_stage_and_reports(tiny_truth, tmp_path
     state = run_pipeline(tiny_truth, moved, cfg, truth=tiny_truth, on_stage=lambda s, st: seen.append((s, st)))
     assert all(st == "skip" for _, st in seen) and len(seen) == 5
     assert Path(state["stages"]["report"]["report"]) == moved / "report.html"
-    assert json.loads((moved / "run.json").read_text())["stages"]["scenario"]["scene"] == str(moved / "scene")
+    stored = json.loads((moved / "run.json").read_text())["stages"]
+    assert stored["scenario"]["scene"] == stored["simulate"]["summary"]["scene_folder"] == str(moved / "scene")
 
 
 def test_run_refuses_a_missing_dataset(tmp_path):

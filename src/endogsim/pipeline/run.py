@@ -220,4 +220,7 @@ def _outputs_here(state: dict, out: Path) -> dict:
     for name, key in (("scenario", "scene"), ("report", "report")):
         if key in state["stages"].get(name, {}):
             state["stages"][name][key] = str(out / OUTPUTS[name])
+    summary = state["stages"].get("simulate", {}).get("summary")
+    if isinstance(summary, dict) and "scene_folder" in summary:  # the simulate stage's own record of its scene
+        summary["scene_folder"] = str(out / OUTPUTS["scenario"])
     return state
