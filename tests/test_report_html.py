@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from html.parser import HTMLParser
 
@@ -176,3 +177,17 @@ def test_fid_with_a_local_weights_file(tmp_path):
     assert d > 0  # (a randomly initialised network: tiny features, so compare relatively)
     assert abs(frechet_distance(*feature_statistics(f[:2]), *feature_statistics(f[:2]))) < 1e-6 * d
     assert fid(a, b, weights=weights) == pytest.approx(d, rel=1e-6)
+
+
+def test_unreadable_instrument_records_do_not_fail_the_report(tmp_path):
+    from endogsim.evaluate.report_html import write_report
+
+    scene, run = tmp_path / "scene", tmp_path / "run"
+    scene.mkdir()
+    run.mkdir()
+    (scene / "scene.json").write_text(json.dumps({"objects": [], "camera": {"K": [[100, 0, 50], [0, 100, 40], [0, 0, 1]]},
+                                                  "colliders": [{"object_id": 1, "tip": [0, 0, 0.05]}]}))  # no end
+    (run / "metrics.json").write_text(json.dumps({"scene": "s", "loss": "joint", "iterations": 0, "materials": {},
+                                                  "folder": str(scene)}))
+    html = write_report(run).read_text()
+    assert "<h2>Instruments</h2>" in html and "could not be read" in html

@@ -233,7 +233,8 @@ def _instruments_section(metrics: dict, run: Path) -> list[str]:
                      c.get("tissue_particles_inside_before_push", 0), tool.get("contact", "sticky"),
                      f"{sum(map(bool, seen))} of {len(seen)}" if seen else "all"])
         if still is not None and tip[2] > 0 and end[2] > 0:
-            (u0, v0), (u1, v1) = ((K @ p)[:2] / (K @ p)[2] for p in (end, tip))
+            # pixels, clipped far outside the image (cv2 takes int32 coordinates)
+            (u0, v0), (u1, v1) = (np.clip((K @ p)[:2] / (K @ p)[2], -1e4, 1e4).astype(int) for p in (end, tip))
             colour = _TOOL_COLOURS[k % len(_TOOL_COLOURS)]
             cv2.line(still, (int(u0), int(v0)), (int(u1), int(v1)), colour, 2, cv2.LINE_AA)
             cv2.circle(still, (int(u1), int(v1)), 5, colour, -1, cv2.LINE_AA)
@@ -366,7 +367,10 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                      f"{100 * w['drop']:.2f}% of the footprint beyond what the video shows{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
                      "drop means the simulated tissue tore, and the run fails)</p>")
 
-    parts += _instruments_section(metrics, run)
+    try:
+        parts += _instruments_section(metrics, run)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:  # an optional section never fails the report
+        parts.append(f'<h2>Instruments</h2><p class="note">scene.json\'s colliders could not be read ({_e(exc)})</p>')
 
     if validation is not None:
         parts += _validation_section(Path(validation), rel)
