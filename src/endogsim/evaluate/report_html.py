@@ -103,14 +103,20 @@ def _load_json(path: Path) -> dict | None:
         raise DataError(f"{path}: not valid JSON ({exc})") from None
 
 
-def _material_rows(run: Path, metrics: dict) -> tuple[list[str], list[list]]:
+def _scene_of(metrics: dict, run: Path) -> tuple[Path | None, dict | None]:
+    """The scene folder a run's ``metrics.json`` names (``folder`` as written, else ``folder_from_run``
+    relative to the run folder: both moved) and its ``scene.json``; (None, None) when neither is there."""
+    named, relative = metrics.get("folder"), metrics.get("folder_from_run")
+    for f in (named, relative and run / relative):
+        if f and (Path(f) / "scene.json").is_file():
+            return Path(f), _load_json(Path(f) / "scene.json")
+    return None, None
+
+
+def _material_rows(run: Path, metrics: dict, scene: dict | None) -> tuple[list[str], list[list]]:
     ident = _load_json(run / "materials_identified.json") or {"objects": []}
     init = {o["object_id"]: o for o in (_load_json(run / "materials_init.json") or {"objects": []})["objects"]}
-    truth = {}
-    folder = metrics.get("folder")
-    if folder and (Path(folder) / "scene.json").is_file():
-        scene = json.loads((Path(folder) / "scene.json").read_text())
-        truth = {o["id"]: o for o in scene.get("objects", [])}
+    truth = {o["id"]: o for o in (scene or {}).get("objects", [])}
     re_obj = metrics.get("re_objects") or {}
     cols = ["object", "id", "class", "model", "E (Pa)", "nu", "density (kg/m^3)", "E range (Pa)", "source",
             "confidence", "init E (Pa)", "init nu", "init source", "true E (Pa)", "true nu", "RE"]
@@ -200,26 +206,22 @@ def _validation_section(folder: Path, rel) -> list[str]:
 _TOOL_COLOURS = [(255, 60, 60), (60, 140, 255), (60, 220, 90), (255, 200, 40), (220, 80, 255)]
 
 
-def _instruments_section(metrics: dict, run: Path) -> list[str]:
-    """The instruments of a real video's scene (``scene.json`` ``colliders``, written by
-    ``pipeline/scene_from_recon.py``): how each capsule was fitted, and frame 0 with each capsule's axis and
-    working end (its tip, where jaws bite) drawn; nothing for a scene without fitted colliders (a benchmark
-    scene takes its ground truth's)."""
+def _instruments_section(folder: Path | None, doc: dict | None) -> list[str]:
+    """The instruments of a real video's scene (``doc``: the ``scene.json`` of ``folder``; its ``colliders``
+    are written by ``pipeline/scene_from_recon.py``): how each capsule was fitted, and frame 0 with each
+    capsule's axis and working end (its tip, where jaws bite) drawn; nothing for a scene without fitted
+    colliders (a benchmark scene takes its ground truth's)."""
     import cv2
 
     from endogsim.io.images import read_rgb
 
-    named, relative = metrics.get("folder"), metrics.get("folder_from_run")
-    folder = next((Path(f) for f in (named, relative and run / relative) if f and (Path(f) / "scene.json").is_file()),
-                  None)
-    doc = _load_json(folder / "scene.json") if folder is not None else None
     if not doc or not doc.get("colliders"):
         return []
     names = {o["id"]: o.get("name", str(o["id"])) for o in doc.get("objects", [])}
     tools = {t["object_id"]: t for t in doc.get("scenario", {}).get("tools", [])}
     K = np.asarray(doc["camera"]["K"], float)
     rows, still = [], None
-    image = folder / doc.get("files", {}).get("images", "images/frame-%06d.color.png").replace("%06d", "000000")
+    image = folder / (doc.get("files", {}).get("images", "images/frame-%06d.color.png") % 0)
     if image.is_file():
         still = np.round(read_rgb(image) * 255.0).astype(np.uint8)
     for k, c in enumerate(doc["colliders"]):
@@ -331,7 +333,8 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
             for n, p in plots) + "</div>")
 
     # Materials.
-    cols, rows = _material_rows(run, metrics)
+    scene_folder, scene_doc = _scene_of(metrics, run)
+    cols, rows = _material_rows(run, metrics, scene_doc)
     parts.append("<h2>Material field</h2>" + _table(cols, rows, left=4))
     parts.append('<p class="note">E in Pa, density in kg/m^3; the range is the prior\'s plausible E interval '
                  "(from the initialiser); RE = mean relative error of E, nu, G, K against the ground truth.</p>")
@@ -368,7 +371,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                      "drop means the simulated tissue tore, and the run fails)</p>")
 
     try:
-        parts += _instruments_section(metrics, run)
+        parts += _instruments_section(scene_folder, scene_doc)
     except (KeyError, TypeError, ValueError, IndexError) as exc:  # an optional section never fails the report
         parts.append(f'<h2>Instruments</h2><p class="note">scene.json\'s colliders could not be read ({_e(exc)})</p>')
 

@@ -198,7 +198,7 @@ class Slice:
 
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
                compare: Callable[[float], tuple[float, float, float]], threshold: float,
-               significance: float | None = None, workers: int = 1) -> Slice:
+               significance: float | None = None) -> Slice:
     """Walk one parameter's slice outward from ``best``: its interval and what it shows on each side.
 
     On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
@@ -213,13 +213,9 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
         compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
         threshold: z above which a value is excluded from the interval (:func:`critical_z`).
         significance: z above which the loss counts as significantly higher (:func:`significant_z`).
-        workers: the two sides are independent: walk them this many at a time
-            (:func:`~endogsim.warp_runtime.run_independent`;
-            ``compare`` must then be safe to call from two threads). The result does not depend on it.
     """
     stop = _stop_z(threshold, significance)
-    down, up = run_independent([lambda: walk_side(best, steps, box, compare, stop, -1),
-                                lambda: walk_side(best, steps, box, compare, stop, 1)], workers)
+    down, up = (walk_side(best, steps, box, compare, stop, side) for side in (-1, 1))
     return slice_from_sides(best, box, threshold, stop, down, up)
 
 
