@@ -585,6 +585,15 @@ def test_run_stages_are_done_only_while_their_inputs_and_outputs_match(tiny, oth
     assert run(other, fresh=True) == ["done", "done"]
 
 
+@pytest.mark.parametrize("text", ['{"data": "x"}', "[]", '{"stages": []}', '{"stages": {"reconstruct": 1}}'])
+def test_a_run_state_that_is_json_but_not_a_run_state_is_one_line(tmp_path, text):
+    from endogsim.pipeline.run import _load_state
+
+    (tmp_path / "run.json").write_text(text)
+    with pytest.raises(DataError, match=r"run\.json: not a run state .*--fresh"):
+        _load_state(tmp_path / "run.json")
+
+
 # ------------------------------------------------------------------------------------------------------ kill and resume
 @pytest.mark.slow
 def test_a_sigkilled_identify_resumes_to_the_same_result_and_leaves_no_lock(tiny, tmp_path):

@@ -41,8 +41,9 @@ Public API
 - :class:`Particles` (x [P,3] m, volume [P] m^3, object_ids [P], v [P,3] m/s or None);
   ``Particles.box(lo, hi, spacing, object_id)``; :func:`particles_from_gaussians`.
 - :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`;
-  :func:`capsule_collider` the collider itself, :func:`grasped_particles` the tissue a grasper's jaws hold
-  (``RigidCollider.holds``: held particles move rigidly with the instrument).
+  :func:`capsule_collider` the collider itself (a pushing one grown by :data:`PUSH_CONTACT_CELLS`, 0 cells),
+  :func:`grasped_particles` the tissue a grasper's jaws hold (``RigidCollider.holds``: held particles move
+  rigidly with the instrument).
 - :func:`simulate` (particles, materials, scenario, config, num_frames, v0=None) -> :class:`SimResult`
   (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
 - :func:`mpm_rollout` (particles, materials, scenario, config, num_frames, grad_mode
@@ -67,7 +68,7 @@ _EXPORTS = {
     "Scenario": "config",
     "ObjectMaterials": "materials",
     "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",
-    "GRASP_MARGIN": "particles", "capsule_collider": "particles", "capsule_collider_points": "particles",
+    "GRASP_MARGIN": "particles", "PUSH_CONTACT_CELLS": "particles", "capsule_collider": "particles", "capsule_collider_points": "particles",
     "grasped_particles": "particles", "drive_gaussians": "particles", "extrude_along_rays": "particles",
     "particles_from_gaussians": "particles", "rotate_sh": "particles",
     "polar_rotation_torch": "polar",

@@ -343,12 +343,27 @@ def grasped_particles(x, tip, radius: float, free=None, margin: float = GRASP_MA
     return np.flatnonzero(near)
 
 
+#: How far beyond its radius a pushing instrument marks grid nodes (cells); 0: the nodes inside its capsule.
+#: Those stop short of the surface by a fraction of a cell that depends on where the grid falls, so a probe
+#: acts smaller than it is, the more so the coarser the grid (a 3-mm probe is about one cell). Grown by a
+#: quarter cell, a probe presses alike on every grid (tests/test_physics.py::_probe_press: centre deflection
+#: 0.76 / 0.96 mm on grids 50 / 100 marking the capsule alone, 1.15 / 1.17 / 1.16 mm on grids 50 / 100 / 200
+#: grown by 0.25) and the benchmark's probe scenes change less under refinement (press 0.272 -> 0.170,
+#: gallbladder 0.199 -> 0.145). It stays 0 because the bigger probe drags more tissue: sliding sideways 4-5
+#: mm deep, the demo's sticky probe tears its tissue behind it past the coverage check (seeds 2 and 3: 1.1%
+#: of the footprint; 0.96% at most with 0). docs/IDENTIFICATION.md section 3. Graspers are never grown: the
+#: tissue their jaws hold is their contact, a bite of physical size.
+PUSH_CONTACT_CELLS = 0.0
+
+
 def capsule_collider(tip, end, radius: float, transforms, dx: float, holds=None):
     """A :class:`~endogsim.physics.config.RigidCollider` for a capsule instrument (``tip``-``end``, ``radius``
     metres, frame 0) moved by ``transforms`` [T, 4, 4] on a grid of cell ``dx`` metres; ``holds``: the
-    particle indices it grasps (:func:`grasped_particles`), or None for a tool that only pushes."""
+    particle indices it grasps (:func:`grasped_particles`), or None for a tool that only pushes (its nodes
+    are marked :data:`PUSH_CONTACT_CELLS` beyond its surface)."""
     from endogsim.physics.config import RigidCollider
 
-    pts, rho = capsule_collider_points(tip, end, radius, dx)
+    reach = radius if holds is not None else radius + PUSH_CONTACT_CELLS * dx
+    pts, rho = capsule_collider_points(tip, end, reach, dx)
     return RigidCollider(points=torch.as_tensor(pts), transforms=torch.as_tensor(transforms), radius=rho,
                          holds=None if holds is None else torch.as_tensor(holds))

@@ -86,12 +86,17 @@ class PipelineConfig:
 
 
 def _load_state(path: Path) -> dict:
-    if path.is_file():
-        try:
-            return json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(f"{path}: unreadable run state ({exc}); delete it to start the run over") from exc
-    return {"stages": {}}
+    if not path.is_file():
+        return {"stages": {}}
+    try:
+        state = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{path}: unreadable run state ({exc}); delete it to start the run over") from exc
+    stages = state.get("stages") if isinstance(state, dict) else None
+    if not isinstance(stages, dict) or not all(isinstance(r, dict) for r in stages.values()):
+        raise DataError(f"{path}: not a run state (it needs a \"stages\" object of stage records); delete it or "
+                        "use --fresh to start the run over")
+    return state
 
 
 def run_pipeline(
