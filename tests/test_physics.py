@@ -425,26 +425,38 @@ def test_anchored_slab_motion_converges_in_dt():
     assert (d50 - d100).abs().max() < 0.04 * scale, ((d25 - d100).abs().max() / scale, (d50 - d100).abs().max() / scale)
 
 
-def _grasp_lift(grid: int, frames: int = 8):
-    """A 6-mm slab held at both ends, grasped in the middle by a 3-mm capsule that lifts it 4 mm.
+def _slab_and_capsule(grid: int, tip_z: float, end_z: float, travel_z: float, frames: int, grasp: bool):
+    """A 6-mm slab (x 30-70 mm) held at both ends and a 3-mm capsule over its middle (axis along z from
+    ``tip_z`` to ``end_z``) that moves ``travel_z`` metres along z, grasping the slab or only pushing it.
 
-    Returns the mean lift (m) of the slab in 8 bins along its length, the particles, the held indices and
-    the result."""
+    Returns the particles, their rest positions [P, 3] (numpy), the held indices (or None) and the result."""
     from endogsim.physics.particles import capsule_collider, grasped_particles
 
     parts = Particles.box((0.03, 0.04, 0.05), (0.07, 0.06, 0.056), 0.1 / grid / 2)
     x = parts.x.double().numpy()
     ends = (x[:, 0] < 0.034) | (x[:, 0] > 0.066)
-    tip, end = np.array([0.05, 0.05, 0.0575]), np.array([0.05, 0.05, 0.08])
+    tip, end = np.array([0.05, 0.05, tip_z]), np.array([0.05, 0.05, end_z])
     tf = np.tile(np.eye(4), (frames, 1, 1))
-    tf[:, 2, 3] = np.linspace(0, 0.004, frames)
-    holds = grasped_particles(x, tip, 0.003, free=~ends)
+    tf[:, 2, 3] = np.linspace(0, travel_z, frames)
+    holds = grasped_particles(x, tip, 0.003, free=~ends) if grasp else None
     scen = Scenario(BOX, anchors=[Anchor(particle_mask=torch.as_tensor(ends))],
                     colliders=[capsule_collider(tip, end, 0.003, tf, 0.1 / grid, holds)])
-    res = simulate(parts, _mats(5e3, 0.4), scen, MPMConfig(grid_res=grid, damping=50.0), frames)
-    lift = (res.positions[-1] - parts.x)[:, 2].double().numpy()
+    return parts, x, holds, simulate(parts, _mats(5e3, 0.4), scen, MPMConfig(grid_res=grid, damping=50.0), frames)
+
+
+def _along_the_slab(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Mean of ``u`` [P] over 8 bins along the slab's length."""
     bins = np.digitize(x[:, 0], np.linspace(0.03, 0.07, 9))
-    return np.array([lift[bins == k].mean() for k in range(1, 9)]), parts, holds, res
+    return np.array([u[bins == k].mean() for k in range(1, 9)])
+
+
+def _grasp_lift(grid: int, frames: int = 8):
+    """The slab grasped in the middle by the capsule, which lifts it 4 mm.
+
+    Returns the mean lift (m) of the slab in 8 bins along its length, the particles, the held indices and
+    the result."""
+    parts, x, holds, res = _slab_and_capsule(grid, 0.0575, 0.08, 0.004, frames, grasp=True)
+    return _along_the_slab(x, (res.positions[-1] - parts.x)[:, 2].double().numpy()), parts, holds, res
 
 
 def test_grasped_tissue_moves_with_the_instrument():
@@ -466,24 +478,13 @@ def test_grasp_lift_converges_under_refinement():
 
 
 def _probe_press(grid: int, frames: int = 8) -> tuple[np.ndarray, float]:
-    """A 6-mm slab held at both ends, pressed in the middle by a 3-mm probe (a capsule that only pushes)
-    that starts 0.5 mm in front of it and moves 3 mm into it. Returns the mean deflection (m) of the slab in
-    8 bins along its length and how far its front layer under the probe moved (m)."""
-    from endogsim.physics.particles import capsule_collider
-
-    parts = Particles.box((0.03, 0.04, 0.05), (0.07, 0.06, 0.056), 0.1 / grid / 2)
-    x = parts.x.double().numpy()
-    ends = (x[:, 0] < 0.034) | (x[:, 0] > 0.066)
-    tip, end = np.array([0.05, 0.05, 0.0465]), np.array([0.05, 0.05, 0.02])
-    tf = np.tile(np.eye(4), (frames, 1, 1))
-    tf[:, 2, 3] = np.linspace(0, 0.003, frames)
-    scen = Scenario(BOX, anchors=[Anchor(particle_mask=torch.as_tensor(ends))],
-                    colliders=[capsule_collider(tip, end, 0.003, tf, 0.1 / grid)])
-    res = simulate(parts, _mats(5e3, 0.4), scen, MPMConfig(grid_res=grid, damping=50.0), frames)
+    """The slab pressed in the middle by the capsule as a probe (it only pushes), which starts 0.5 mm in
+    front of it and moves 3 mm into it. Returns the mean deflection (m) of the slab in 8 bins along its
+    length and how far its front layer under the probe moved (m)."""
+    parts, x, _, res = _slab_and_capsule(grid, 0.0465, 0.02, 0.003, frames, grasp=False)
     push = (res.positions[-1] - parts.x)[:, 2].double().numpy()
-    bins = np.digitize(x[:, 0], np.linspace(0.03, 0.07, 9))
     under = (np.hypot(x[:, 0] - 0.05, x[:, 1] - 0.05) < 0.0015) & (x[:, 2] < 0.0515)
-    return np.array([push[bins == k].mean() for k in range(1, 9)]), float(push[under].mean())
+    return _along_the_slab(x, push), float(push[under].mean())
 
 
 def test_a_probe_grown_by_a_quarter_cell_presses_the_same_at_any_grid(monkeypatch):
