@@ -382,6 +382,26 @@ def test_trials_run_several_at_a_time_give_the_same_intervals():
     assert len(threads) > 1 and len(coarse_at_best) == 1
 
 
+def test_trials_side_by_side_fit_in_half_the_available_memory(monkeypatch):
+    import torch
+
+    import endogsim.warp_runtime as runtime
+
+    free = runtime.available_memory()  # Linux's MemAvailable, None elsewhere
+    assert free is None or free > 0
+    run = runtime.simulation_bytes(1_000_000, 63, 100)  # a million particles over 63 frames: 3 GB a run
+    assert 3.0e9 < run < 3.1e9
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 16)
+    monkeypatch.setattr(runtime, "available_memory", lambda: 8 * 10**9)
+    assert runtime.independent_runs("cpu", run) == 1  # half of 8 GB holds one
+    monkeypatch.setattr(runtime, "available_memory", lambda: 64 * 10**9)
+    assert runtime.independent_runs("cpu", run) == 4  # threads bound it, at most 4
+    monkeypatch.setattr(runtime, "available_memory", lambda: None)  # unknown: threads alone
+    assert runtime.independent_runs("cpu", run) == 4
+    monkeypatch.setattr(runtime, "available_memory", lambda: 10**6)
+    assert runtime.independent_runs("cpu", run) == 1 and runtime.independent_runs("cuda", run) == 1
+
+
 def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path, monkeypatch):
     """The same through identification with real simulations (Warp on the CPU from several threads at
     once): the intervals of ``tiny`` (3 frames) with 3 trials at a time equal those of one at a time."""
@@ -392,7 +412,7 @@ def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path,
     folder = synthesize("tiny", tmp_path / "tiny", frames=3)
     got = {}
     for workers in (1, 3):
-        monkeypatch.setattr(optimize, "independent_runs", lambda device, w=workers: w)
+        monkeypatch.setattr(optimize, "independent_runs", lambda device, bytes_per_run=0, w=workers: w)
         m = run_identify(folder, tmp_path / f"run{workers}", init="prior",
                          config=IdentifyConfig(iters=1, intervals=True), video=False)
         got[workers] = (m["materials"], m["intervals"], m["identifiable"])

@@ -23,7 +23,7 @@ import torch
 import warp as wp
 
 __all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split", "independent_runs",
-           "run_independent", "check_cancelled", "Cancelled"]
+           "run_independent", "check_cancelled", "Cancelled", "simulation_bytes", "available_memory"]
 
 _ready = False
 _POOL: ThreadPoolExecutor | None = None
@@ -88,12 +88,35 @@ def n_bands(device: str, n_items: int, min_items: int = 4096) -> int:
     return 1 if device != "cpu" or n_items < min_items else max(1, min(torch.get_num_threads(), 8))
 
 
-def independent_runs(device: str) -> int:
+def independent_runs(device: str, bytes_per_run: int = 0) -> int:
     """How many independent simulations to run at a time on ``device`` (e.g. an interval's trials): on a
     CPU one per torch thread, at most 4 (Warp runs each CPU launch on one core; ``OMP_NUM_THREADS`` or
-    ``torch.set_num_threads`` is the budget: set it to 1 when timing beside other jobs), on CUDA one (its
-    launches share the GPU)."""
-    return 1 if device != "cpu" else max(1, min(torch.get_num_threads(), 4))
+    ``torch.set_num_threads`` is the budget: set it to 1 when timing beside other jobs), and no more than
+    half the memory available now holds at ``bytes_per_run`` each (:func:`simulation_bytes`; at least one);
+    on CUDA one (its launches share the GPU)."""
+    runs = 1 if device != "cpu" else max(1, min(torch.get_num_threads(), 4))
+    free = available_memory() if runs > 1 and bytes_per_run > 0 else None
+    if free is not None:
+        runs = max(1, min(runs, int(0.5 * free // bytes_per_run)))
+    return runs
+
+
+def simulation_bytes(num_particles: int, num_frames: int, grid_res: int) -> int:
+    """Memory (bytes) one simulation keeps while it runs: every frame's particle positions and deformation
+    gradients (float32) and its grid (mass, momentum, velocity, collider marks)."""
+    return 4 * (num_frames * num_particles * 12 + grid_res ** 3 * 12)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory new allocations can take now (Linux's MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 class Cancelled(BaseException):
