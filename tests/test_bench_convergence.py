@@ -40,6 +40,20 @@ def test_cli_writes_the_cases_and_settings(tmp_path):
     assert res["settings"]["target_rms_change"] == TARGET_RMS_CHANGE
 
 
+def test_a_refinement_sequence_gives_the_change_from_each_level_to_the_next(tmp_path):
+    out = tmp_path / "seq.json"
+    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--frames", "3", "--levels", "1,2",
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    q = json.loads(out.read_text())["sequences"][0]
+    assert q["factors"] == [1, 2] and len(q["changes"]) == 1 and q["grid"][1] == 2 * q["grid"][0]
+    # the same comparison as the default bench's, from the same simulations
+    assert q["changes"][0] == pytest.approx(convergence_case("tiny", frames=3)["rms_change"], rel=1e-9)
+    for bad in ("2,3", "1,1", "1", "1,x"):
+        r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--levels", bad])
+        assert r.exit_code == 2 and "levels" in r.output, (bad, r.output)
+
+
 def test_unknown_scenes_are_refused_before_any_work():
     with pytest.raises(DataError, match="unknown suite scene.*nowhere"):
         run_bench(["tiny", "nowhere"])

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import torch
 
-__all__ = ["TARGET_RMS_CHANGE", "motion_of", "convergence_case", "run_bench"]
+__all__ = ["TARGET_RMS_CHANGE", "motion_of", "convergence_case", "refinement_sequence", "run_bench"]
 
 #: The issue's target: a 2x refinement changes the motion by at most this (RMS, relative).
 TARGET_RMS_CHANGE = 0.05
@@ -44,46 +44,109 @@ def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
     return means.double(), len(filled.particles), res.substeps
 
 
+def _refined(b, factor: int):
+    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself)."""
+    from endogsim.scene.discretisation import refine
+    from endogsim.scene.motion import tool_speed
+
+    if factor == 1:
+        return b.identification
+    return refine(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor)
+
+
+def _rms_change(coarse: torch.Tensor, fine: torch.Tensor) -> float:
+    """RMS difference of two motions [T, G, 3] relative to the RMS of the second (module docstring)."""
+    u_c, u_f = coarse - coarse[:1], fine - fine[:1]
+    return float((u_c - u_f).square().sum(-1).mean().sqrt() / u_f.square().sum(-1).mean().sqrt().clamp_min(1e-12))
+
+
+def _rms_mm(m: torch.Tensor) -> float:
+    return 1e3 * float((m - m[:1]).square().sum(-1).mean().sqrt())
+
+
 def convergence_case(name: str, frames: int | None = None, factor: int = 2) -> dict:
     """The RMS motion change of suite scene ``name`` between identification's discretisation and its
     ``factor``-times refinement (see the module docstring)."""
-    from endogsim.scene.discretisation import refine
-    from endogsim.scene.motion import tool_speed
     from endogsim.synth.scenes import build_procedural
 
     b = build_procedural(name, seed=0, frames=frames)
-    fine = refine(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor)
+    fine = _refined(b, factor)
     t0 = time.perf_counter()
     coarse, n_coarse, sub_coarse = motion_of(b, b.identification)
     t1 = time.perf_counter()
     refined, n_fine, sub_fine = motion_of(b, fine)
     t2 = time.perf_counter()
-    u_c, u_f = coarse - coarse[:1], refined - refined[:1]
-    change = float((u_c - u_f).square().sum(-1).mean().sqrt() / u_f.square().sum(-1).mean().sqrt().clamp_min(1e-12))
+    change = _rms_change(coarse, refined)
     return {"scene": name, "frames": b.frames, "factor": factor, "particles": n_coarse, "grid": b.identification.grid, "substeps": sub_coarse,
             "particle_spacing_mm": 1e3 * b.identification.particle_spacing,
             "refined_particles": n_fine, "refined_grid": fine.grid, "refined_substeps": sub_fine,
-            "rms_motion_mm": 1e3 * float(u_f.square().sum(-1).mean().sqrt()),
-            "rms_motion_default_mm": 1e3 * float(u_c.square().sum(-1).mean().sqrt()), "rms_change": change,
+            "rms_motion_mm": _rms_mm(refined), "rms_motion_default_mm": _rms_mm(coarse), "rms_change": change,
             "converged": change <= TARGET_RMS_CHANGE,
             "seconds": round(t1 - t0, 1), "refined_seconds": round(t2 - t1, 1)}
 
 
-def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log=None) -> dict:
-    """:func:`convergence_case` for every scene in ``scenes`` (suite names; checked before any work).
+def refinement_sequence(name: str, factors: list[int], frames: int | None = None) -> dict:
+    """Suite scene ``name`` at identification's discretisation refined by each of ``factors`` (increasing;
+    1 is the default itself), and the RMS motion change from each level to the next: how fast the motion
+    settles under refinement (a change that does not fall does not converge).
 
     Returns:
-        {"cases": [convergence_case(...), ...], "settings": {scenes, frames, factor, target_rms_change,
-        seed, generator_revision, threads}}
+        {"scene", "frames", "factors", "grid", "particles", "substeps", "rms_motion_mm", "seconds": one per
+        level; "changes": one per pair of consecutive levels}
+    """
+    from endogsim.synth.scenes import build_procedural
+
+    b = build_procedural(name, seed=0, frames=frames)
+    out = {"scene": name, "frames": b.frames, "factors": list(factors), "grid": [], "particles": [], "substeps": [],
+           "rms_motion_mm": [], "seconds": []}
+    motions = []
+    for f in factors:
+        settings = _refined(b, f)
+        t0 = time.perf_counter()
+        m, n, sub = motion_of(b, settings)
+        motions.append(m)
+        out["grid"].append(settings.grid)
+        out["particles"].append(n)
+        out["substeps"].append(sub)
+        out["rms_motion_mm"].append(_rms_mm(m))
+        out["seconds"].append(round(time.perf_counter() - t0, 1))
+    out["changes"] = [_rms_change(a, c) for a, c in zip(motions[:-1], motions[1:])]
+    return out
+
+
+def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log=None,
+              levels: list[int] | None = None) -> dict:
+    """:func:`convergence_case` for every scene in ``scenes`` (suite names; checked before any work), or with
+    ``levels`` (increasing refinement factors from 1) its :func:`refinement_sequence` instead.
+
+    Returns:
+        {"cases": [convergence_case(...), ...] or "sequences": [refinement_sequence(...), ...], "settings":
+        {scenes, frames, factor or levels, target_rms_change, seed, generator_revision, push_contact_cells,
+        threads}}
     """
     from endogsim.errors import DataError
+    from endogsim.physics.particles import PUSH_CONTACT_CELLS
     from endogsim.synth.suite import GENERATOR_REVISION, suite_scene_names
 
     unknown = [s for s in scenes if s not in suite_scene_names()]
     if unknown:
         raise DataError(f"unknown suite scene(s) {', '.join(unknown)}; choose from {', '.join(suite_scene_names())}")
-    if factor < 2:
+    if levels is None and factor < 2:
         raise DataError(f"refinement factor {factor} must be >= 2")
+    if levels is not None and (len(levels) < 2 or levels[0] != 1 or any(b <= a for a, b in zip(levels, levels[1:]))):
+        raise DataError(f"refinement levels {levels} must start at 1 and increase (e.g. 1,2,3)")
+    settings = {"scenes": list(scenes), "frames": frames, "target_rms_change": TARGET_RMS_CHANGE, "seed": 0,
+                "generator_revision": GENERATOR_REVISION, "push_contact_cells": PUSH_CONTACT_CELLS,
+                "threads": torch.get_num_threads()}
+    if levels is not None:
+        sequences = []
+        for name in scenes:
+            sequences.append(refinement_sequence(name, levels, frames))
+            if log is not None:
+                q = sequences[-1]
+                log(f"{name}: rms changes {', '.join(f'{c:.3f}' for c in q['changes'])} "
+                    f"({' -> '.join(f'{f}x' for f in levels)}; {sum(q['seconds']):.0f} s)")
+        return {"sequences": sequences, "settings": {**settings, "levels": list(levels)}}
     cases = []
     for name in scenes:
         cases.append(convergence_case(name, frames, factor))
@@ -91,7 +154,4 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
             c = cases[-1]
             log(f"{name}: rms change {c['rms_change']:.3f} ({c['particles']} particles, grid {c['grid']}; "
                 f"{c['seconds'] + c['refined_seconds']:.0f} s)")
-    return {"cases": cases,
-            "settings": {"scenes": list(scenes), "frames": frames, "factor": factor,
-                         "target_rms_change": TARGET_RMS_CHANGE, "seed": 0,
-                         "generator_revision": GENERATOR_REVISION, "threads": torch.get_num_threads()}}
+    return {"cases": cases, "settings": {**settings, "factor": factor}}

@@ -146,6 +146,8 @@ def register(bench_app: typer.Typer) -> None:
                                              "each scene's)."),
         factor: int = typer.Option(2, "--factor", help="Refinement factor (grid x factor, particle spacing / "
                                    "factor, substeps x factor at least)."),
+        levels: Optional[str] = typer.Option(None, "--levels", help="Instead: a refinement sequence, e.g. 1,2,3: "
+                                             "the RMS change from each level to the next (does it fall?)."),
     ) -> None:
         """Is identification's discretisation converged? Each scene's ground-truth simulation at identification's
         grid, particles and substeps vs refined 2x: the RMS change of the tissue's motion (target <= 0.05)."""
@@ -155,6 +157,22 @@ def register(bench_app: typer.Typer) -> None:
         names = scenes.split(",") if scenes else suite_scene_names()
         if frames is not None and frames < 2:
             raise typer.BadParameter("--frames must be >= 2")
+        if levels is not None:
+            try:
+                steps = [int(v) for v in levels.split(",")]
+            except ValueError:
+                raise typer.BadParameter(f"--levels {levels!r}: comma-separated whole factors, e.g. 1,2,3") from None
+            res = run_bench(names, frames, log=console.print, levels=steps)
+            print_table(f"Refinement sequence {' -> '.join(f'{f}x' for f in steps)}: RMS motion change from each "
+                        "level to the next",
+                        ["scene", "particles", "grid", "rms motion (mm)", "rms changes", "seconds"],
+                        [(q["scene"], " / ".join(map(str, q["particles"])), " / ".join(map(str, q["grid"])),
+                          " / ".join(f"{v:.3f}" for v in q["rms_motion_mm"]), ", ".join(f"{c:.3f}" for c in q["changes"]),
+                          f"{sum(q['seconds']):.0f}") for q in res["sequences"]])
+            if json_out is not None:
+                write_json_atomic(json_out, res)
+                console.print(f"wrote {json_out}")
+            return
         res = run_bench(names, frames, factor=factor, log=console.print)
         print_table(f"Discretisation convergence: motion change under a {factor}x refinement (target rms change "
                     f"<= {TARGET_RMS_CHANGE})",
