@@ -139,19 +139,26 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
                 "generator_revision": GENERATOR_REVISION, "push_contact_cells": PUSH_CONTACT_CELLS,
                 "threads": torch.get_num_threads()}
     if levels is not None:
-        sequences = []
-        for name in scenes:
-            sequences.append(refinement_sequence(name, levels, frames))
-            if log is not None:
-                q = sequences[-1]
-                log(f"{name}: rms changes {', '.join(f'{c:.3f}' for c in q['changes'])} "
+        key, extra = "sequences", {"levels": list(levels)}
+
+        def measure(name: str) -> dict:
+            return refinement_sequence(name, levels, frames)
+
+        def describe(q: dict) -> str:
+            return (f"rms changes {', '.join(f'{c:.3f}' for c in q['changes'])} "
                     f"({' -> '.join(f'{f}x' for f in levels)}; {sum(q['seconds']):.0f} s)")
-        return {"sequences": sequences, "settings": {**settings, "levels": list(levels)}}
-    cases = []
+    else:
+        key, extra = "cases", {"factor": factor}
+
+        def measure(name: str) -> dict:
+            return convergence_case(name, frames, factor)
+
+        def describe(c: dict) -> str:
+            return (f"rms change {c['rms_change']:.3f} ({c['particles']} particles, grid {c['grid']}; "
+                    f"{c['seconds'] + c['refined_seconds']:.0f} s)")
+    results = []
     for name in scenes:
-        cases.append(convergence_case(name, frames, factor))
+        results.append(measure(name))
         if log is not None:
-            c = cases[-1]
-            log(f"{name}: rms change {c['rms_change']:.3f} ({c['particles']} particles, grid {c['grid']}; "
-                f"{c['seconds'] + c['refined_seconds']:.0f} s)")
-    return {"cases": cases, "settings": {**settings, "factor": factor}}
+            log(f"{name}: {describe(results[-1])}")
+    return {key: results, "settings": {**settings, **extra}}
