@@ -167,8 +167,9 @@ def register(bench_app: typer.Typer) -> None:
                         "level to the next",
                         ["scene", "particles", "grid", "rms motion (mm)", "rms changes", "seconds"],
                         [(q["scene"], " / ".join(map(str, q["particles"])), " / ".join(map(str, q["grid"])),
-                          " / ".join(f"{v:.3f}" for v in q["rms_motion_mm"]), ", ".join(f"{c:.3f}" for c in q["changes"]),
-                          f"{sum(q['seconds']):.0f}") for q in res["sequences"]])
+                          " / ".join(f"{v:.3f}" for v in q["rms_motion_mm"]),
+                          ", ".join(f"{c:.3f}" for c in q["changes"]), f"{sum(q['seconds']):.0f}")
+                         for q in res["sequences"]])
             if json_out is not None:
                 write_json_atomic(json_out, res)
                 console.print(f"wrote {json_out}")
