@@ -214,6 +214,7 @@ def _instruments_section(folder: Path | None, doc: dict | None) -> list[str]:
     import cv2
 
     from endogsim.io.images import read_rgb
+    from endogsim.scene.schema import IMAGES_PATTERN
 
     if not doc or not doc.get("colliders"):
         return []
@@ -221,7 +222,7 @@ def _instruments_section(folder: Path | None, doc: dict | None) -> list[str]:
     tools = {t["object_id"]: t for t in doc.get("scenario", {}).get("tools", [])}
     K = np.asarray(doc["camera"]["K"], float)
     rows, still = [], None
-    image = folder / (doc.get("files", {}).get("images", "images/frame-%06d.color.png") % 0)
+    image = folder / (doc.get("files", {}).get("images", IMAGES_PATTERN) % 0)
     if image.is_file():
         still = np.round(read_rgb(image) * 255.0).astype(np.uint8)
     for k, c in enumerate(doc["colliders"]):

@@ -408,7 +408,7 @@ def scene_from_reconstruction(
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
     from endogsim.recon.model import load_reconstruction
     from endogsim.scene.particles import build_particles, gaussian_surfaces
-    from endogsim.scene.schema import load_scene_spec, scene_spec_from_json
+    from endogsim.scene.schema import IMAGES_PATTERN, load_scene_spec, scene_spec_from_json
     from endogsim.scene.tracks import TissueTracks, sample_tracks, write_tissue_tracks
 
     recon_run, data, out = Path(recon_run), Path(data), Path(out)
@@ -463,7 +463,7 @@ def scene_from_reconstruction(
         "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0,
         "frames": T, "objects": objects, "scenario": sc_doc, "camera": cam_doc,
         "depth_scale": gt.depth_scale if gt is not None else 10000.0,
-        "files": {"images": "images/frame-%06d.color.png", "gaussians_t0": "gaussians_t0.ply", "tracks": "tracks.npz"},
+        "files": {"images": IMAGES_PATTERN, "gaussians_t0": "gaussians_t0.ply", "tracks": "tracks.npz"},
         "source": "reconstruction+truth" if gt is not None else "reconstruction",
         "reconstruction": str(recon_run), "data": str(data), "tool_motion": tool_motion,
     }

@@ -42,7 +42,7 @@ from endogsim.physics import (
 )
 from endogsim.scene.discretisation import refine
 from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces, tool_colliders
-from endogsim.scene.schema import SceneSpec, SimSettings, load_scene_spec
+from endogsim.scene.schema import IMAGES_PATTERN, SceneSpec, SimSettings, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
 __all__ = ["SimScene", "coarsened", "load_sim_scene", "read_observations"]
@@ -117,7 +117,7 @@ def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.nd
                                                                            np.ndarray | None, np.ndarray | None]:
     """Observed frames [T, H, W, 3], object masks [T, H, W] (or None), ground-truth flow [T-1, H, W, 2] and
     its valid mask [T-1, H, W] (or None) of a scene folder."""
-    pat = spec.files.get("images", "images/frame-%06d.color.png")
+    pat = spec.files.get("images", IMAGES_PATTERN)
     imgs = [read_rgb(folder / (pat % t)) for t in range(frames)]
     out_frames = np.stack(imgs)
     masks = None

@@ -23,9 +23,12 @@ from endogsim.errors import DataError, MaterialError
 from endogsim.materials.field import MaterialRecord
 
 __all__ = ["SceneObject", "ToolCapsule", "SimSettings", "ObjectBoundary", "ScenarioSpec", "CameraSpec", "SceneSpec",
-           "load_scene_spec", "scene_spec_from_json"]
+           "load_scene_spec", "scene_spec_from_json", "IMAGES_PATTERN"]
 
 SCENE_JSON_VERSION = 2
+
+#: Where a scene folder's frames are (``files.images``, with one %d for the frame number) unless it says.
+IMAGES_PATTERN = "images/frame-%06d.color.png"
 
 
 @dataclass
@@ -397,7 +400,7 @@ def _check_files(spec: SceneSpec, path: Path) -> None:
         if Path(pattern).is_absolute() or not target.is_relative_to(folder):
             raise DataError(f"{path}: files.{key} = {pattern!r} points outside the scene folder {folder}; paths in "
                             "'files' must stay inside it")
-    images = spec.files.get("images", "images/frame-%06d.color.png")
+    images = spec.files.get("images", IMAGES_PATTERN)
     try:
         last = folder / (images % (spec.frames - 1))
     except (TypeError, ValueError):

@@ -57,7 +57,7 @@ from endogsim.scene.particles import (
     scenario_forces,
     tool_colliders,
 )
-from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneSpec
+from endogsim.scene.schema import IMAGES_PATTERN, CameraSpec, ScenarioSpec, SceneSpec
 from endogsim.synth.scenes import BuiltScene, build_procedural
 from endogsim.synth.suite import GENERATOR_REVISION, check_size
 
@@ -185,7 +185,7 @@ def _scene_spec(b: BuiltScene, seed: int) -> SceneSpec:
     return SceneSpec(
         name=b.name, seed=seed, frames=b.frames, objects=b.objects, scenario=scenario, camera=cam,
         depth_scale=DEPTH_SCALE, source=b.source, generator=GENERATOR_REVISION,
-        files={"images": "images/frame-%06d.color.png", "depth": "depth/frame-%06d.depth.png",
+        files={"images": IMAGES_PATTERN, "depth": "depth/frame-%06d.depth.png",
                "masks": "masks/frame-%06d.mask.png", "object_masks": "object_masks/frame-%06d.png",
                "flow": "flow/frame-%06d.flow.npy", "flow_valid": "flow/frame-%06d.valid.png",
                "gaussians_t0": "gaussians_t0.ply", "particles_ground_truth": "particles_ground_truth.npz"},
