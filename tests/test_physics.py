@@ -266,6 +266,81 @@ def test_a_slab_filled_finer_than_its_surface_samples_keeps_its_volume_and_outli
     assert 0.2 < near_edge < 0.45, near_edge  # the 2-mm band of a 30 x 20 mm patch: 31% of its area
 
 
+def _two_object_spec(border_a: float, border_b: float, thick_a: float, thick_b: float):
+    """A scene of two deformable objects (ids 1, 2) in a 0.1-m box in front of the camera, both on a
+    support, for :func:`endogsim.scene.particles.build_particles`."""
+    from endogsim.scene.schema import CameraSpec, SceneObject, SceneSpec, ScenarioSpec, SimSettings
+
+    sim = SimSettings(grid=100, dt=1e-4, substeps=10, cfl=0.1)  # dx 1 mm, particles 0.5 mm apart
+    anchors = [{"type": "anchors", "object": n, "back_face": "support", "border": b}
+               for n, b in (("a", border_a), ("b", border_b))]
+    sc = ScenarioSpec(box_lo=[-0.05, -0.05, 0.05], box_size=0.1, gravity=[0, 0, 0], frame_dt=0.01, damping=0,
+                      boundary_conditions=anchors, tools=[], extrusion={"thickness": {"a": thick_a, "b": thick_b}},
+                      ground_truth=sim, identification=sim)
+    objects = [SceneObject(1, "a", "liver", False), SceneObject(2, "b", "gallbladder", False)]
+    cam = CameraSpec(K=[[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]], width=320, height=240,
+                     viewmat=np.eye(4).tolist())
+    return SceneSpec(name="two", seed=0, frames=2, objects=objects, scenario=sc, camera=cam, depth_scale=1.0)
+
+
+def _patch(x0, x1, y0, y1, z, step=0.0005, hole=None):
+    """[N, 3] samples of a flat patch at depth z (metres), optionally without a rectangular hole."""
+    X, Y = np.meshgrid(np.arange(x0, x1 + 1e-9, step), np.arange(y0, y1 + 1e-9, step), indexing="ij")
+    keep = np.ones(X.shape, bool)
+    if hole is not None:
+        hx0, hx1, hy0, hy1 = hole
+        keep = ~((X > hx0) & (X < hx1) & (Y > hy0) & (Y < hy1))
+    return np.stack([X[keep], Y[keep], np.full(keep.sum(), z)], 1)
+
+
+def test_organs_side_by_side_are_held_along_the_view_not_where_they_meet():
+    """Two patches that meet at x = 0 are each held in a 3-mm band along their outline, except along the
+    line where they meet: there each goes on into the other, coupled on the shared grid (until stop 32 both
+    bands were held, and CholecSeg8K's gallbladder, between liver and fat, was held whole)."""
+    from endogsim.scene.particles import build_particles
+
+    spec = _two_object_spec(0.003, 0.003, 0.004, 0.004)
+    cam = Camera(torch.tensor(spec.camera.K), 320, 240)
+    surfaces = {1: _patch(-0.02, -0.0005, -0.01, 0.01, 0.1), 2: _patch(0.0, 0.02, -0.01, 0.01, 0.1)}
+    sp = build_particles(surfaces, spec, cam, spec.scenario.identification)
+    x, ids = sp.particles.x.double().numpy(), sp.particles.object_ids.numpy()
+    mid_y = np.abs(x[:, 1]) < 0.005  # away from the top and bottom outlines
+    near_junction = mid_y & (np.abs(x[:, 0]) < 0.002)
+    near_outer = mid_y & (np.abs(x[:, 0]) > 0.0185)
+    for oid in (1, 2):
+        assert (near_junction & (ids == oid)).sum() > 20 and (near_outer & (ids == oid)).sum() > 20
+        assert not sp.pinned[near_junction & (ids == oid)].any()
+        assert sp.pinned[near_outer & (ids == oid)].all()
+    # Alone, each patch is held along its whole outline, the line at x = 0 included.
+    alone = build_particles({1: surfaces[1]}, spec, cam, spec.scenario.identification)
+    xa = alone.particles.x.double().numpy()
+    assert alone.pinned[(np.abs(xa[:, 1]) < 0.005) & (xa[:, 0] > -0.0015)].all()
+
+
+def test_an_organ_filled_behind_another_gives_each_place_one_material():
+    """A 40 x 30 mm patch with a hole where a 12 x 12 mm organ lies 5 mm in front of it: the back patch is
+    filled across its hole (the tissue goes on behind what is in front), and where its slab and the front
+    organ's overlap, the front organ's material is there, once. The space behind the front organ's back
+    face is the back patch's tissue there, not the anatomy's support."""
+    from endogsim.scene.particles import build_particles
+
+    spec = _two_object_spec(0.0, 0.0, 0.006, 0.008)
+    cam = Camera(torch.tensor(spec.camera.K), 320, 240)
+    surfaces = {1: _patch(-0.02, 0.02, -0.015, 0.015, 0.1, hole=(-0.006, 0.006, -0.006, 0.006)),
+                2: _patch(-0.006, 0.006, -0.006, 0.006, 0.095)}
+    sp = build_particles(surfaces, spec, cam, spec.scenario.identification)
+    x, ids = sp.particles.x.double().numpy(), sp.particles.object_ids.numpy()
+    assert len(np.unique(np.round(x / 1e-4), axis=0)) == len(x)  # no place holds two particles
+    over = (np.abs(x[:, 0]) < 0.004) & (np.abs(x[:, 1]) < 0.004)
+    front, back = over & (ids == 2), over & (ids == 1)
+    assert front.sum() > 100 and back.sum() > 50
+    assert x[front, 2].max() < 0.1031 and x[back, 2].min() > 0.1029  # the front organ's slab ends at 0.103
+    assert x[back, 2].max() > 0.105  # the back patch goes on behind it, to its own back face at ~0.106
+    column = np.array([[0.0, 0.0, 0.1045], [0.0, 0.0, 0.1075]])
+    assert sp.slabs[2].behind(column).tolist() == [False, True]  # the back patch's tissue, then behind both
+    assert sp.slabs[1].behind(column).tolist() == [False, True]
+
+
 def _surface_gaussians(n=20, depth=0.1, sh_degree=0):
     u = torch.linspace(-0.01, 0.01, n)
     X, Y = torch.meshgrid(u, u, indexing="ij")

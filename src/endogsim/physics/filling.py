@@ -14,14 +14,15 @@ interior filling, for a one-sided view):
 3. each kept point carries its depth behind the surface and its distance to the footprint's outline in the
    image-parallel plane; the :class:`SurfaceMap` locates any point the same way, so boundary conditions can
    be set on grid nodes by geometry (behind the back face; within a band of the outline), independent of
-   how finely the particles sample the slab.
+   how finely the particles sample the slab. Where several objects are seen side by side,
+   :func:`outline_beside` measures that distance to the part of the outline that borders none of them.
 
 Units: metres; world coordinates; the camera gives the rays.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -29,7 +30,7 @@ import torch
 from endogsim.errors import SimulationError
 from endogsim.gaussians.camera import Camera
 
-__all__ = ["FilledSolid", "SurfaceMap", "surface_map", "fill_behind_surface"]
+__all__ = ["FilledSolid", "SurfaceMap", "surface_map", "fill_behind_surface", "outline_beside"]
 
 
 @dataclass
@@ -88,6 +89,14 @@ class SurfaceMap:
         depth = np.where(ok, np.linalg.norm(pc, axis=1) - self.front[i, j], np.inf)
         edge = np.where(ok & np.isfinite(depth), self.edge[i, j] * self.du * np.abs(z), 0.0)
         return depth, edge
+
+    def covers(self, uv: np.ndarray) -> np.ndarray:
+        """[N] bool: image-plane points ``uv`` [N, 2] (u = x / z, v = y / z) that lie on the footprint."""
+        cij = np.floor((np.asarray(uv, np.float64) - self.lo) / self.du).astype(np.int64)
+        ok = (cij >= 0).all(1) & (cij[:, 0] < self.front.shape[0]) & (cij[:, 1] < self.front.shape[1])
+        out = np.zeros(len(cij), bool)
+        out[ok] = np.isfinite(self.front[cij[ok, 0], cij[ok, 1]])
+        return out
 
 
 def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2) -> SurfaceMap:
@@ -178,3 +187,35 @@ def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thick
     if not out_x:  # a surface smaller than the lattice spacing
         return FilledSolid(np.zeros((0, 3)), np.zeros(0), np.zeros(0), float(spacing)), smap
     return FilledSolid(np.concatenate(out_x), np.concatenate(out_d), np.concatenate(out_e), float(spacing)), smap
+
+
+def outline_beside(smap: SurfaceMap, neighbours: list[SurfaceMap], gap_cells: int = 4) -> SurfaceMap:
+    """``smap`` with its distance to the outline measured to the part of the outline that borders none of
+    ``neighbours`` (surfaces seen from the same camera).
+
+    A band along an object's outline is held because the tissue goes on beyond what is seen of it; where
+    the outline borders another simulated object (an organ attached to it, or one in front of it) the tissue
+    goes on into that object, which the simulation couples to it on the shared grid, so nothing there is
+    held. Footprints up to ``gap_cells`` map cells apart count as bordering: adjacent organs' samples lie
+    about a sample apart, and each footprint's outline is ragged by a cell. The distance is Euclidean in
+    the image plane, so it may cross a neighbour narrower than the band to the view's outline beyond it.
+
+    Args:
+        smap: the object's map. neighbours: the maps of the other objects it may border.
+        gap_cells: the widest gap (cells of ``smap``) between footprints that still counts as bordering.
+    """
+    from scipy import ndimage
+
+    if not neighbours:
+        return smap
+    nu, nv = smap.front.shape
+    ij = np.stack(np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij"), -1).reshape(-1, 2)
+    centres = smap.lo + (ij + 0.5) * smap.du
+    beside = np.zeros(len(centres), bool)
+    for other in neighbours:
+        beside |= other.covers(centres)
+    beside = ndimage.binary_dilation(beside.reshape(nu, nv), iterations=gap_cells)
+    inside = np.isfinite(smap.front) | beside
+    # Padding repeats the map's border cells: a neighbour that goes on beyond this map's extent goes on.
+    edge = ndimage.distance_transform_edt(np.pad(inside, 1, mode="edge"))[1:-1, 1:-1]
+    return replace(smap, edge=edge)

@@ -7,10 +7,13 @@ particles) or a procedural scene's true surface (the benchmark's ground truth, a
 1. each object's slab of ``scenario.thickness(name)`` behind its surface is filled with a lattice of the
    discretisation's particle spacing, aligned with the simulation grid (two particles per cell and axis at
    half-cell spacing: :func:`endogsim.physics.filling.fill_behind_surface`);
-2. its boundary conditions (``scenario.boundary(name)``) are set by geometry on the grid nodes (the space
-   behind the back face is a fixed wall or a support, with or without friction, outside an optional release disc; a band
-   along the outline holds still), and on the particles they contain (pinned: the band along the outline,
-   and the deepest layer of a "fixed" back face).
+2. where objects meet, each place holds one material: a lattice point inside several slabs (an organ
+   filled behind one in front of it) belongs to the object seen in front along its ray;
+3. its boundary conditions (``scenario.boundary(name)``) are set by geometry on the grid nodes (the space
+   behind the back face, unless another object's slab is there, is a fixed wall or a support, with or
+   without friction, outside an optional release disc; a band along the outline holds still, except where
+   the outline borders another object: the tissue goes on into it), and on the particles they contain
+   (pinned: the band along the outline, and the deepest layer of a "fixed" back face).
 
 Units: metres, world coordinates.
 """
@@ -18,7 +21,7 @@ Units: metres, world coordinates.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -27,12 +30,12 @@ from endogsim.errors import DataError, DataWarning
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.physics import Anchor, ExternalForce, Particles, RigidCollider
-from endogsim.physics.filling import SurfaceMap, fill_behind_surface
+from endogsim.physics.filling import FilledSolid, SurfaceMap, fill_behind_surface, outline_beside
 from endogsim.physics.particles import capsule_collider, grasped_particles
 from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings, ToolCapsule
 
-__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "scenario_forces",
-           "tool_colliders"]
+__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "one_object_per_place",
+           "scenario_forces", "tool_colliders"]
 
 
 @dataclass
@@ -41,14 +44,22 @@ class SlabConditions:
     (depth behind the surface, distance to the outline), so grid nodes get their conditions by position.
 
     Attributes:
-        surface: the object's :class:`~endogsim.physics.filling.SurfaceMap`.
+        surface: the object's :class:`~endogsim.physics.filling.SurfaceMap` (its distance to the outline
+            measured to the part that borders no other object: :func:`~endogsim.physics.filling.outline_beside`).
         thickness: slab thickness (metres).
         boundary: the scene's description of its conditions.
+        neighbours: the other objects' slabs; the space behind this back face is not held where they are.
     """
 
     surface: SurfaceMap
     thickness: float
     boundary: ObjectBoundary
+    neighbours: list["SlabConditions"] = field(default_factory=list)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: world points inside the slab (depth behind its surface in [0, thickness))."""
+        depth, _ = self.surface.locate(points)
+        return (depth >= 0) & (depth < self.thickness)
 
     def released(self, points: np.ndarray) -> np.ndarray:
         """[N] bool: world points over the release disc, where the back face is free."""
@@ -60,7 +71,10 @@ class SlabConditions:
     def behind(self, points: np.ndarray) -> np.ndarray:
         """[N] bool: world points behind the slab's back face (inside its footprint, off the release disc)."""
         depth, _ = self.surface.locate(points)
-        return np.isfinite(depth) & (depth >= self.thickness) & ~self.released(points)
+        out = np.isfinite(depth) & (depth >= self.thickness) & ~self.released(points)
+        for other in self.neighbours:  # an organ behind this one's back face is tissue, not the anatomy's wall
+            out[out] &= ~other.contains(points[out])
+        return out
 
     def border(self, points: np.ndarray) -> np.ndarray:
         """[N] bool: world points of the slab within ``boundary.border`` of the outline."""
@@ -130,27 +144,33 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
     # Lattice points at the particle spacing through box_lo + spacing / 2: with spacing = dx / 2 these are
     # the quarter points of every grid cell, the usual two particles per cell and axis.
     origin = np.asarray(sc.box_lo, float) + spacing / 2
-    parts, pinned, slabs = [], [], {}
+    solids, maps = {}, {}
     for oid, pts in surfaces.items():
         name = spec.object(oid).name
         thickness = sc.thickness(name)
         if thickness <= 0:
             raise DataError(f"scene {spec.name!r}: object {name!r} has no thickness behind its surface "
                             "(scenario.extrusion.thickness)")
-        solid = None
         if len(pts) >= 3:
-            solid, smap = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
-        if solid is None or len(solid) == 0:  # a sliver of segmentation: nothing to simulate
+            solids[oid], maps[oid] = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
+    kept = one_object_per_place(solids, origin, spacing)
+    parts, pinned, slabs = [], [], {}
+    for oid, pts in surfaces.items():
+        name = spec.object(oid).name
+        solid = solids.get(oid)
+        x = solid.x[kept[oid]] if solid is not None else np.zeros((0, 3))
+        if len(x) == 0:  # a sliver of segmentation: nothing to simulate
             warnings.warn(f"scene {spec.name!r}: object {name!r} ({len(pts)} surface samples) is smaller than "
                           f"one particle at {spacing * 1e3:.2f} mm spacing; it is not simulated (its Gaussians "
                           "stay in place)", DataWarning, stacklevel=2)
             continue
-        slab = SlabConditions(smap, thickness, sc.boundary(name))
-        pin = slab.border(solid.x)
+        others = [m for o, m in maps.items() if o != oid and kept[o].any()]
+        slab = SlabConditions(outline_beside(maps[oid], others), sc.thickness(name), sc.boundary(name))
+        pin = slab.border(x)
         if slab.boundary.back_face == "fixed":  # the deepest lattice layer is glued to the anatomy behind
-            pin |= (solid.depth_behind >= thickness - spacing) & ~slab.released(solid.x)
-        P = len(solid)
-        parts.append(Particles(torch.as_tensor(solid.x, dtype=torch.float32),
+            pin |= (solid.depth_behind[kept[oid]] >= slab.thickness - spacing) & ~slab.released(x)
+        P = len(x)
+        parts.append(Particles(torch.as_tensor(x, dtype=torch.float32),
                                torch.full((P,), spacing ** 3, dtype=torch.float32),
                                torch.full((P,), int(oid), dtype=torch.int64)))
         pinned.append(pin)
@@ -158,7 +178,32 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
     if not parts:
         raise DataError(f"scene {spec.name!r}: no deformable object large enough to fill with particles "
                         f"(spacing {spacing * 1e3:.2f} mm)")
+    for oid, slab in slabs.items():
+        slab.neighbours = [s for o, s in slabs.items() if o != oid]
     return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs)
+
+
+def one_object_per_place(solids: dict[int, FilledSolid], origin: np.ndarray, spacing: float) -> dict[int, np.ndarray]:
+    """{object id: [P] bool, the points of its solid it keeps}: a lattice point inside several objects' slabs
+    (an organ whose footprint was filled behind another one seen in front of it) belongs to the object seen
+    in front along its ray, the one it lies deepest behind the surface of.
+
+    Args:
+        solids: {object id: its :class:`~endogsim.physics.filling.FilledSolid`}, all on one lattice.
+        origin: [3] a lattice point (metres); spacing: the lattice spacing (metres).
+    """
+    if not solids:
+        return {}
+    keys = np.concatenate([np.rint((s.x - origin) / spacing).astype(np.int64) for s in solids.values()])
+    depth = np.concatenate([s.depth_behind for s in solids.values()])
+    order = np.lexsort((-depth, keys[:, 2], keys[:, 1], keys[:, 0]))  # each point's deepest claim first
+    k = keys[order]
+    first = np.ones(len(k), bool)
+    first[1:] = (k[1:] != k[:-1]).any(1)
+    keep = np.zeros(len(k), bool)
+    keep[order[first]] = True
+    sizes = np.cumsum([0] + [len(s) for s in solids.values()])
+    return {oid: keep[a:b] for oid, a, b in zip(solids, sizes[:-1], sizes[1:])}
 
 
 def scenario_forces(spec: SceneSpec, particles: Particles) -> list[ExternalForce]:

@@ -10,7 +10,7 @@ description by :mod:`endogsim.scene.particles`, for the ground truth and for ide
     a support that pushes but never pulls, with friction while pressed ("support": the suite's) or without
     ("slip_support"), except inside an optional ``release`` disc (so a grasper can lift a flap);
   * ``border``: particles within ``border`` metres of an organ's outline are held (tissue continues
-    outside the field of view);
+    outside the field of view), except where the outline meets another organ (it goes on into that one);
   * the sim box walls (2 grid cells) are fixed.
 """
 
