@@ -121,6 +121,8 @@ class SimResult:
         substeps: substeps per frame actually used.
         dt: substep (s).
         colliders: per collider, [T, Pc, 3] world positions it followed (kinematic: exactly as prescribed).
+        settling_left: the largest particle displacement (metres) over the last settling frame, what the
+            settling had not yet reached of the equilibrium (0 without settling); it moves on in the clip.
     """
 
     positions: torch.Tensor
@@ -129,6 +131,7 @@ class SimResult:
     substeps: int
     dt: float
     colliders: list[torch.Tensor] = field(default_factory=list)
+    settling_left: float = 0.0
 
 
 class Simulator:
@@ -240,10 +243,13 @@ class Simulator:
             # tensors, as the differentiable rollout does).
             xs = box.to_world(stack_arrays([s[0] for s in states]).double()).to(device=x0.device, dtype=x0.dtype)
             xs[0] = x0
+            S = self.scenario.settle_frames
+            settling_left = float((xs[S] - xs[S - 1]).norm(dim=-1).max()) if S > 0 else 0.0
             xs, Fs = self._clip(xs, stack_arrays([s[3] for s in states]).to(x0.device))
         times = torch.arange(self.num_frames, dtype=torch.float64) * self.config.frame_dt
         return SimResult(xs, Fs, times, step.substeps, step.dt,
-                         [c.trajectory()[: self.num_frames].to(x0.dtype) for c in self.scenario.colliders])
+                         [c.trajectory()[: self.num_frames].to(x0.dtype) for c in self.scenario.colliders],
+                         settling_left)
 
 
 def mpm_rollout(
