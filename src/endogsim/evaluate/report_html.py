@@ -370,6 +370,14 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
         parts.append(f"<h2>Tissue coverage</h2><p>largest drop of the rendered tissue coverage: "
                      f"{100 * w['drop']:.2f}% of the footprint beyond what the video shows{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
                      "drop means the simulated tissue tore, and the run fails)</p>")
+    settle = metrics.get("settling")
+    if isinstance(settle, dict) and settle.get("frames"):
+        verdict = "settled" if settle["settled"] else (
+            "NOT settled: the rest moves in the clip (a real video starts at equilibrium; a fit reads that motion "
+            "as the tissue's response)")
+        parts.append(f"<h2>Settling</h2><p>{settle['frames']} frames under gravity before frame 0; in the last, a "
+                     f"particle still moved {1e3 * settle['last_frame_motion_m']:.4f} mm ({100 * settle['cells']:.2f}% "
+                     f"of a grid cell; tolerance {100 * settle.get('tolerance_cells', 0.01):.0f}%): {_e(verdict)}</p>")
 
     try:
         parts += _instruments_section(scene_folder, scene_doc)

@@ -107,10 +107,10 @@ def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndar
 def settling_record(problem: SimScene, settling_left: float) -> dict:
     """What the settling before frame 0 left (``settling_left``: :attr:`endogsim.physics.SimResult.
     settling_left`, metres): {"frames", "last_frame_motion_m", "cells" (of the grid), "settled" (at most
-    :data:`SETTLING_TOLERANCE` of a cell)}."""
+    "tolerance_cells", :data:`SETTLING_TOLERANCE`)}."""
     cells = settling_left / (problem.scenario.box.size / problem.mpm.grid_res)
     return {"frames": problem.scenario.settle_frames, "last_frame_motion_m": settling_left, "cells": cells,
-            "settled": bool(cells <= SETTLING_TOLERANCE)}
+            "settled": bool(cells <= SETTLING_TOLERANCE), "tolerance_cells": SETTLING_TOLERANCE}
 
 
 def material_errors(problem: SimScene, fld: MaterialField) -> dict | None:
