@@ -404,7 +404,14 @@ def test_real_clips_give_one_collider_per_instrument(tmp_path, clip, instruments
     x = p.particles.x.double().numpy()
     for t in tools:
         assert _segment_distance(x, np.asarray(t.tip), np.asarray(t.end)).min() >= t.radius
-
+    # Held is the band along the view's outline, not where organs meet: until stop 32 CholecSeg8K's
+    # gallbladder and gastrointestinal tract were held whole and half its particles were held (here 52%;
+    # now 26%; pulling's one tissue 32%, at this quick reconstruction's resolution).
+    held, ids = p.scenario.pinned(x), p.particles.object_ids.numpy()
+    assert held.mean() < 0.4, held.mean()
+    for oid in np.unique(ids):
+        if (ids == oid).sum() >= 100:
+            assert held[ids == oid].mean() < 0.75, (p.spec.object(int(oid)).name, held[ids == oid].mean())
 
 
 def test_a_grasping_tool_holds_the_free_tissue_its_jaws_close_on():
