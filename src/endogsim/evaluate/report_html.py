@@ -377,7 +377,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
             "as the tissue's response)")
         parts.append(f"<h2>Settling</h2><p>{settle['frames']} frames under gravity before frame 0; in the last, a "
                      f"particle still moved {1e3 * settle['last_frame_motion_m']:.4f} mm ({100 * settle['cells']:.2f}% "
-                     f"of a grid cell; tolerance {100 * settle.get('tolerance_cells', 0.01):.0f}%): {_e(verdict)}</p>")
+                     f"of a grid cell; tolerance {100 * settle['tolerance_cells']:.0f}%): {_e(verdict)}</p>")
 
     try:
         parts += _instruments_section(scene_folder, scene_doc)

@@ -77,26 +77,29 @@ class SurfaceMap:
     front: np.ndarray
     edge: np.ndarray
 
+    def _cells(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The map cell (i [N], j [N]; 0 where off the map) of image-plane points ``uv`` [N, 2], and [N] bool
+        whether it lies on the map."""
+        cij = np.floor((uv - self.lo) / self.du).astype(np.int64)
+        ok = (cij >= 0).all(1) & (cij[:, 0] < self.front.shape[0]) & (cij[:, 1] < self.front.shape[1])
+        return np.where(ok, cij[:, 0], 0), np.where(ok, cij[:, 1], 0), ok
+
     def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Depth behind the surface along the viewing ray [N] (metres; inf off the footprint) and distance to
         the footprint's outline in the image-parallel plane [N] (metres; 0 off it) of world points [N, 3]."""
         pc = _to_camera(np.asarray(points, np.float64), self.camera)
         z = pc[:, 2]
-        ok = z > 1e-6
-        cij = np.floor((pc[:, :2] / np.where(ok, z, 1.0)[:, None] - self.lo) / self.du).astype(np.int64)
-        ok &= (cij >= 0).all(1) & (cij[:, 0] < self.front.shape[0]) & (cij[:, 1] < self.front.shape[1])
-        i, j = np.where(ok, cij[:, 0], 0), np.where(ok, cij[:, 1], 0)
+        ahead = z > 1e-6
+        i, j, ok = self._cells(pc[:, :2] / np.where(ahead, z, 1.0)[:, None])
+        ok &= ahead
         depth = np.where(ok, np.linalg.norm(pc, axis=1) - self.front[i, j], np.inf)
         edge = np.where(ok & np.isfinite(depth), self.edge[i, j] * self.du * np.abs(z), 0.0)
         return depth, edge
 
     def covers(self, uv: np.ndarray) -> np.ndarray:
         """[N] bool: image-plane points ``uv`` [N, 2] (u = x / z, v = y / z) that lie on the footprint."""
-        cij = np.floor((np.asarray(uv, np.float64) - self.lo) / self.du).astype(np.int64)
-        ok = (cij >= 0).all(1) & (cij[:, 0] < self.front.shape[0]) & (cij[:, 1] < self.front.shape[1])
-        out = np.zeros(len(cij), bool)
-        out[ok] = np.isfinite(self.front[cij[ok, 0], cij[ok, 1]])
-        return out
+        i, j, ok = self._cells(np.asarray(uv, np.float64))
+        return ok & np.isfinite(self.front[i, j])
 
 
 def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2) -> SurfaceMap:
