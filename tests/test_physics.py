@@ -269,7 +269,7 @@ def test_a_slab_filled_finer_than_its_surface_samples_keeps_its_volume_and_outli
 def _two_object_spec(border_a: float, border_b: float, thick_a: float, thick_b: float):
     """A scene of two deformable objects (ids 1, 2) in a 0.1-m box in front of the camera, both on a
     support, for :func:`endogsim.scene.particles.build_particles`."""
-    from endogsim.scene.schema import CameraSpec, SceneObject, SceneSpec, ScenarioSpec, SimSettings
+    from endogsim.scene.schema import CameraSpec, ScenarioSpec, SceneObject, SceneSpec, SimSettings
 
     sim = SimSettings(grid=100, dt=1e-4, substeps=10, cfl=0.1)  # dx 1 mm, particles 0.5 mm apart
     anchors = [{"type": "anchors", "object": n, "back_face": "support", "border": b}

@@ -169,6 +169,24 @@ def test_every_suite_scene_builds_within_stability_limits(name):
     assert len(b.tools) == 1 and b.tools[0].matrices().shape == (4, 4, 4)
 
 
+def test_a_ground_truth_that_has_not_settled_is_refused():
+    """Frame 0 of a video is tissue at rest: settling that stops short of the equilibrium would leave its
+    rest moving in the clip as if a tool did it (on `tiny`, 2 frames at 400/s left 5.8% of a grid cell in the
+    ground truth's last settling frame, and a quarter of the clip's motion). The suite's 8 frames at 200/s
+    leave 0.25%."""
+    from dataclasses import replace
+
+    from endogsim.errors import SimulationError
+    from endogsim.synth.generate import simulate_built
+
+    b = build_procedural("tiny", seed=0, frames=2, scale=0.25)
+    assert (b.settle_frames, b.settle_damping) == (8, 200.0)
+    simulate_built(b)
+    with pytest.raises(SimulationError, match=r"scene tiny: the ground truth's settling \(2 frames at 400/s\)"
+                                              r".*% of a grid cell.*raise settle_frames"):
+        simulate_built(replace(b, settle_frames=2, settle_damping=400.0))
+
+
 def test_suite_materials_lie_in_the_priors_in_vivo_range():
     prior = pytest.importorskip("endogsim.materials.prior")
     from endogsim.synth.suite import load_suite

@@ -35,6 +35,7 @@ from endogsim.identify.optimize import IdentifyResult
 from endogsim.identify.uncertainty import ParameterInterval
 from endogsim.io.atomic import write_json_atomic, write_text_atomic
 from endogsim.materials.field import MaterialField
+from endogsim.physics import SETTLING_TOLERANCE
 from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import render_sequence
@@ -42,12 +43,6 @@ from endogsim.scene.forward import render_sequence
 __all__ = ["Evaluation", "evaluate_field", "material_errors", "settling_record", "write_outputs"]
 
 FLOW_ERROR_RANGE = 1.0  # pixels mapped to the top of the colour scale in the video
-# Settling before frame 0 that still moves a particle by more than this share of a grid cell in its last
-# frame has not reached the equilibrium frame 0 stands for: the rest of it moves in the clip, and on a real
-# video (which starts at equilibrium) a fit reads it as the tissue's response (docs/REAL_VIDEO.md section 3).
-# The suite's scenes settle 2 frames of 5 ms and do not reach it either (3.5% of a cell on tiny and pull),
-# in their ground truth as in identification, so there the drift is part of the video.
-SETTLING_TOLERANCE = 0.01
 
 
 @dataclass
@@ -108,7 +103,7 @@ def settling_record(problem: SimScene, settling_left: float) -> dict:
     """What the settling before frame 0 left (``settling_left``: :attr:`endogsim.physics.SimResult.
     settling_left`, metres): {"frames", "last_frame_motion_m", "cells" (of the grid), "settled" (at most
     "tolerance_cells", :data:`SETTLING_TOLERANCE`)}."""
-    cells = settling_left / (problem.scenario.box.size / problem.mpm.grid_res)
+    cells = problem.scenario.settling_cells(settling_left, problem.mpm.grid_res)
     return {"frames": problem.scenario.settle_frames, "last_frame_motion_m": settling_left, "cells": cells,
             "settled": bool(cells <= SETTLING_TOLERANCE), "tolerance_cells": SETTLING_TOLERANCE}
 

@@ -65,7 +65,7 @@ from importlib import import_module
 _EXPORTS = {
     "GRAD_MODES": "modes", "GradMode": "modes",
     "Anchor": "config", "ExternalForce": "config", "MPMConfig": "config", "RigidCollider": "config",
-    "Scenario": "config",
+    "Scenario": "config", "SETTLING_TOLERANCE": "config",
     "ObjectMaterials": "materials",
     "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",
     "GRASP_MARGIN": "particles", "PUSH_CONTACT_CELLS": "particles", "capsule_collider": "particles",

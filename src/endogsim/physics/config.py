@@ -16,6 +16,11 @@ import torch
 from endogsim.errors import SimulationError
 from endogsim.physics.units import SimBox
 
+#: Settling before frame 0 whose last frame still moves a particle by more than this share of a grid cell
+#: has not reached the equilibrium frame 0 stands for: the rest of it moves in the clip, where a fit reads
+#: it as the tissue's response to the instruments (docs/REAL_VIDEO.md section 3).
+SETTLING_TOLERANCE = 0.01
+
 
 @dataclass
 class MPMConfig:
@@ -325,6 +330,11 @@ class Scenario:
                        forces=[replace(f, acceleration=tuple(a / k for a in f.acceleration)) for f in self.forces],
                        settle_damping=None if self.settle_damping is None else self.settle_damping / k,
                        mass_scaling=1.0)
+
+    def settling_cells(self, settling_left: float, grid_res: int) -> float:
+        """What the settling left (:attr:`~endogsim.physics.SimResult.settling_left`, metres) in cells of a
+        ``grid_res`` grid over the sim box; settled is at most :data:`SETTLING_TOLERANCE`."""
+        return settling_left / (self.box.size / grid_res)
 
     def damping_of_frame(self, frame: int, damping: float) -> float:
         """The grid damping (1/s) of output frame ``frame`` of the settled rollout (settle frames first)."""

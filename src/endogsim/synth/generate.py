@@ -42,6 +42,7 @@ from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
 from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
+    SETTLING_TOLERANCE,
     MPMConfig,
     ObjectMaterials,
     Scenario,
@@ -113,6 +114,14 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
     if res.substeps != b.ground_truth.substeps:  # plan_substeps saw the same inputs when the scene was built
         raise SimulationError(f"scene {b.name}: the simulator took {res.substeps} substeps per frame, "
                               f"scene.json records {b.ground_truth.substeps}")
+    cells = scenario.settling_cells(res.settling_left, config.grid_res)
+    if cells > SETTLING_TOLERANCE:  # the rest of the settling would move in the video as if a tool did it
+        raise SimulationError(
+            f"scene {b.name}: the ground truth's settling ({b.settle_frames} frames at "
+            f"{scenario.settle_damping if scenario.settle_damping is not None else b.damping:g}/s) still "
+            f"moves a particle by {1e3 * res.settling_left:.4f} mm in its last frame ({100 * cells:.2f}% of a "
+            f"grid cell, tolerance {100 * SETTLING_TOLERANCE:g}%): frame 0 would not be the equilibrium a "
+            f"video starts at; raise settle_frames")
     tissue = b.gaussians.subset(torch.from_numpy(b.tissue_gaussians))
     binding = bind_gaussians(tissue.means, tissue.object_ids, filled.particles)
     means, covs = [], []
