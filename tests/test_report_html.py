@@ -84,7 +84,7 @@ def test_report_is_well_formed_and_links_exist(run_with_simulation, tmp_path, mo
     assert "FID: n/a (no Inception weights" in text
     assert "EPE (px)" in text and "PSNR (dB)" in text
     assert "<h2>Instruments</h2>" not in text  # a synthesized scene has no fitted colliders to show
-    assert re.search(r"<h2>Settling</h2><p>2 frames under gravity before frame 0; in the last, a particle still "
+    assert re.search(r"<h2>Settling</h2><p>8 frames under gravity before frame 0; in the last, a particle still "
                      r"moved \d\.\d{4} mm", text)  # what the settling left (metrics.json "settling")
 
 
