@@ -172,7 +172,7 @@ def test_every_suite_scene_builds_within_stability_limits(name):
 def test_a_ground_truth_that_has_not_settled_is_refused():
     """Frame 0 of a video is tissue at rest: settling that stops short of the equilibrium would leave its
     rest moving in the clip as if a tool did it (on `tiny`, 2 frames at 400/s left 5.8% of a grid cell in the
-    ground truth's last settling frame, and a quarter of the clip's motion). The suite's 8 frames at 200/s
+    ground truth's last settling frame; the drift was 16% of the clip's RMS motion). The suite's 8 frames at 200/s
     leave 0.25%."""
     from dataclasses import replace
 

@@ -118,7 +118,7 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
     if cells > SETTLING_TOLERANCE:  # the rest of the settling would move in the video as if a tool did it
         raise SimulationError(
             f"scene {b.name}: the ground truth's settling ({b.settle_frames} frames at "
-            f"{scenario.settle_damping if scenario.settle_damping is not None else b.damping:g}/s) still "
+            f"{scenario.damping_of_frame(0, config.damping):g}/s) still "
             f"moves a particle by {1e3 * res.settling_left:.4f} mm in its last frame ({100 * cells:.2f}% of a "
             f"grid cell, tolerance {100 * SETTLING_TOLERANCE:g}%): frame 0 would not be the equilibrium a "
             f"video starts at; raise settle_frames")
