@@ -83,6 +83,9 @@ def test_run_resumes_after_an_interrupted_stage_and_reports(tiny_truth, tmp_path
     assert ("reconstruct", "skip") in seen and ("scenario", "skip") in seen and ("identify", "done") in seen
     assert all(state["stages"][s]["done"] for s in ("identify", "simulate", "report"))
     assert math.isfinite(state["stages"]["identify"]["re_mean"])
+    # the stage's seconds are its wall time, not metrics.json's seconds of its iterations
+    ident = state["stages"]["identify"]
+    assert ident["seconds"] >= ident["optimisation_seconds"] > 0
     html = Path(state["stages"]["report"]["report"])
     checker = _TagChecker()
     checker.feed(html.read_text())

@@ -135,11 +135,17 @@ def test_hexplane_gradients_match_finite_differences():
                                     (plane.detach().clone().requires_grad_(),), eps=1e-6, atol=1e-5)
 
 
-def test_hexplane_warp_kernels_match_grid_sample():
+@pytest.mark.parametrize("feature_dim", [5, 16])
+def test_hexplane_warp_kernels_match_grid_sample(feature_dim):
     """The Warp sampler (the CPU float32 path) against grid_sample: values and the gradients of the points
-    and of every plane, with points outside the box (border values, no gradient) and one time per point."""
+    and of every plane, with points outside the box (border values, no gradient) and one time per point.
+    The default channel count (16) uses the kernels instantiated at import: no new overload, which would
+    build the module again."""
+    import endogsim.recon.hexplane_warp as hw
+
+    declared = set(hw.hexplane_forward.overloads), set(hw.hexplane_backward.overloads)
     torch.manual_seed(3)
-    hp = HexPlane(torch.tensor([[-0.02, -0.01, 0.05], [0.02, 0.03, 0.09]]), (0.0, 2.0), feature_dim=5,
+    hp = HexPlane(torch.tensor([[-0.02, -0.01, 0.05], [0.02, 0.03, 0.09]]), (0.0, 2.0), feature_dim=feature_dim,
                   resolution=(7, 6, 5), time_resolution=4, multires=(1, 2))
     with torch.no_grad():
         for planes in hp.levels:
@@ -158,6 +164,8 @@ def test_hexplane_warp_kernels_match_grid_sample():
     assert (a - b).abs().max() < 1e-5
     for x, y in zip(ga, gb):
         assert (x - y).abs().max() <= 1e-4 * x.abs().max() + 1e-6
+    if feature_dim in hw.COMPILED_CHANNELS:
+        assert (set(hw.hexplane_forward.overloads), set(hw.hexplane_backward.overloads)) == declared
 
 
 def test_hexplane_starts_time_independent_and_regularisers_vanish_on_constants():

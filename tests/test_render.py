@@ -269,6 +269,34 @@ def test_warp_backend_matches_torch_values_and_gradients(tile_size, monkeypatch)
         assert (a - b).abs().max() <= 1e-4 * a.abs().max() + 1e-7, name
 
 
+def test_warp_renderer_is_compiled_once_whatever_the_channel_count():
+    """Warp builds a module again (seconds on a CPU) whenever a generic kernel meets new argument types.
+    Renders with 0 to 12 feature channels use the kernels instantiated at import, padded to their channel
+    count, so no render adds an overload; and the padding changes no bit: colour, alpha and the gradients of
+    a colour loss are the same whatever features are composited beside them."""
+    import endogsim.gaussians.rasterize_warp as rw
+
+    kernels = (rw.composite_forward, rw.composite_backward)
+    declared = [set(k.overloads) for k in kernels]
+    assert all(len(d) == len(rw.COMPILED_CHANNELS) for d in declared)
+    means, quats, scales, opac, colors, cam = _scene(n=200, w=31, h=23, seed=3, dtype=torch.float32)
+    feats = torch.rand(len(means), 12, generator=torch.Generator().manual_seed(4))
+    wts = torch.randn(23, 31, 3, generator=torch.Generator().manual_seed(5))
+    first = None
+    for n_feat in range(13):
+        args = [t.clone().requires_grad_(True) for t in (means, opac, colors)]
+        o = rasterize(args[0], args[1], args[2], cam, quats=quats, scales=scales,
+                      features=feats[:, :n_feat] if n_feat else None, backend="warp")
+        got = (o.rgb.detach(), o.alpha.detach(), *torch.autograd.grad((o.rgb * wts).sum(), args))
+        first = got if first is None else first
+        assert all(torch.equal(a, b) for a, b in zip(first, got)), n_feat
+    last_features = o.features.detach()
+    for n_feat in (1, 5, 11):  # each feature channel is composited on its own, whatever the padding
+        o = rasterize(means, opac, colors, cam, quats=quats, scales=scales, features=feats[:, :n_feat], backend="warp")
+        assert torch.equal(o.features, last_features[..., :n_feat])
+    assert [set(k.overloads) for k in kernels] == declared
+
+
 def test_auto_backend_is_warp_for_float32_and_torch_for_float64_on_cpu():
     means, quats, scales, opac, colors, cam = _scene(n=20, seed=11)
     assert rasterize(means, opac, colors, cam, quats=quats, scales=scales).meta["backend"] == "torch"

@@ -34,11 +34,21 @@ import warp as wp
 from endogsim.gaussians.types import RasterConfig
 from endogsim.warp_runtime import float_vector, launch_split, n_bands, warp_array as _wp, warp_device
 
-__all__ = ["TILE_SIZE", "TileBins", "bin_gaussians", "rasterize_warp"]
+__all__ = ["TILE_SIZE", "CHANNEL_QUANTUM", "COMPILED_CHANNELS", "TileBins", "bin_gaussians", "padded_channels",
+           "rasterize_warp"]
 
 #: Default tile edge (pixels). Smaller tiles list a Gaussian in more tiles but make every pixel test
 #: fewer Gaussians that miss it; on a serial CPU the tests dominate (see ``endogsim bench render``).
 TILE_SIZE = 4
+
+#: Renders composite their channels (RGB, depth, then any features) zero-padded to a multiple of this.
+CHANNEL_QUANTUM = 4
+#: Padded channel counts the kernels are instantiated for at import (colour and depth with up to 12 features).
+COMPILED_CHANNELS = (4, 8, 12, 16)
+
+# The gradients are written by hand (composite_backward): Warp need not generate adjoint code, which halves
+# the module's build.
+wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
@@ -191,6 +201,24 @@ def composite_backward(
             wp.atomic_add(grad_opacities, g, d_alpha * alpha / o)
 
 
+# Warp builds a module again, all its kernels, whenever a generic kernel meets new argument types: a
+# renderer instantiated for each channel count as it was met was built 7 times by a first demo (seconds
+# each on a CPU), and again by every process that met the counts in another order. With the channel counts
+# padded to a few and those declared here, the module is the same in every process and built once per machine.
+for _c in COMPILED_CHANNELS:
+    _vec = float_vector(_c)
+    wp.overload(composite_forward, {"colors": wp.array(dtype=_vec), "background": _vec, "image": wp.array(dtype=_vec)})
+    wp.overload(composite_backward, {"colors": wp.array(dtype=_vec), "background": _vec,
+                                     "grad_image": wp.array(dtype=_vec), "grad_colors": wp.array(dtype=_vec)})
+
+
+def padded_channels(channels: int) -> int:
+    """The channel count a render of ``channels`` channels composites (zero-padded; see :data:`CHANNEL_QUANTUM`).
+    Padding changes no bit of the real channels: every channel is composited on its own, and the padded
+    ones add exact zeros to the backward pass's dot products."""
+    return -(-channels // CHANNEL_QUANTUM) * CHANNEL_QUANTUM
+
+
 class TileBins:
     """Per-tile, depth-ordered Gaussian lists of one render (no gradients).
 
@@ -264,9 +292,11 @@ class _TileComposite(torch.autograd.Function):
         inputs = [t.detach().to(f32).contiguous() for t in (means2d, conics, opacities, colors, background)]
         m2, co, op, col, bg = inputs
         P, C = width * height, col.shape[1]
-        vec = float_vector(C)
+        Cp = padded_channels(C)
+        col, bg = torch.nn.functional.pad(col, (0, Cp - C)), torch.nn.functional.pad(bg, (0, Cp - C))
+        vec = float_vector(Cp)
         record = any(ctx.needs_input_grad[:5])
-        image = torch.empty(P, C, dtype=f32, device=dev)
+        image = torch.empty(P, Cp, dtype=f32, device=dev)
         t_final = torch.empty(P, dtype=f32, device=dev)
         n_contrib = torch.zeros(P, dtype=torch.int32, device=dev)
         capacity = bins.n_pairs * bins.tile_size**2 if record else 1
@@ -282,8 +312,8 @@ class _TileComposite(torch.autograd.Function):
                          lambda b, n: common + [b, n, int(record)] + outs)
         ctx.bins, ctx.width, ctx.height, ctx.config = bins, width, height, config
         ctx.dtypes = [t.dtype for t in (means2d, conics, opacities, colors, background)]
-        ctx.save_for_backward(*inputs, t_final, n_contrib, contrib)
-        out = torch.cat([image, (1.0 - t_final)[:, None]], 1)
+        ctx.save_for_backward(m2, co, op, col, bg, t_final, n_contrib, contrib)
+        out = torch.cat([image[:, :C], (1.0 - t_final)[:, None]], 1)
         return out.to(colors.dtype)
 
     @staticmethod
@@ -291,9 +321,11 @@ class _TileComposite(torch.autograd.Function):
         m2, co, op, col, bg, t_final, n_contrib, contrib = ctx.saved_tensors
         bins, cfg = ctx.bins, ctx.config
         g = grad_out.to(torch.float32)
-        P, C = len(t_final), col.shape[1]
-        vec = float_vector(C)
+        P, Cp = len(t_final), col.shape[1]  # col and bg are padded to Cp channels, grad_out has C + 1
+        C = g.shape[1] - 1
+        vec = float_vector(Cp)
         g_img, g_alpha = g[:, :C].contiguous(), g[:, C].contiguous()
+        g_img_padded = torch.nn.functional.pad(g_img, (0, Cp - C))
         device = warp_device(m2)
         nb = n_bands(device, P)
         # one gradient buffer per band: CPU atomics are plain adds, so bands must not share one
@@ -303,7 +335,7 @@ class _TileComposite(torch.autograd.Function):
             common = [_wp(bins.offsets), _wp(m2, wp.vec2), _wp(co, wp.vec3), _wp(op), _wp(col, vec),
                       vec(*bg.tolist()), ctx.width, ctx.height, bins.n_items, bins.tiles_x, bins.tile_size,
                       cfg.alpha_max]
-            rest = [_wp(t_final), _wp(n_contrib), _wp(contrib), _wp(g_img, vec), _wp(g_alpha)]
+            rest = [_wp(t_final), _wp(n_contrib), _wp(contrib), _wp(g_img_padded, vec), _wp(g_alpha)]
 
             def inputs(b, n):
                 return common + [b, n] + rest + [_wp(g_m2[b], wp.vec2), _wp(g_co[b], wp.vec3), _wp(g_op[b]),
@@ -311,7 +343,7 @@ class _TileComposite(torch.autograd.Function):
 
             launch_split(composite_backward, bins.n_items, device, nb, inputs)
         g_bg = g_img.T @ t_final
-        grads = (g_m2.sum(0), g_co.sum(0), g_op.sum(0), g_col.sum(0), g_bg)
+        grads = (g_m2.sum(0), g_co.sum(0), g_op.sum(0), g_col.sum(0)[:, :C], g_bg)
         return (*(gr.to(dt) for gr, dt in zip(grads, ctx.dtypes)), None, None, None, None)
 
 

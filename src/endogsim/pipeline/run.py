@@ -190,8 +190,11 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
         m = run_identify(out / "scene", out / "identify", init=cfg.materials_backend,
                          config=cfg.identify, video=cfg.video, evaluate_init=truth is not None, resume=not fresh)
         keep = ("re_mean", "re_E", "re_nu", "epe", "psnr", "ssim", "iterations", "stopped", "stopped_by_budget",
-                "seconds", "materials", "intervals")
-        return {k: m[k] for k in keep if k in m} | ({"init_metrics": m["init_metrics"]} if "init_metrics" in m else {})
+                "materials", "intervals")
+        # metrics.json's "seconds" times the iterations only; the stage's own "seconds" (its wall time,
+        # intervals and outputs included) must not be replaced by it.
+        return ({k: m[k] for k in keep if k in m} | {"optimisation_seconds": m.get("seconds")}
+                | ({"init_metrics": m["init_metrics"]} if "init_metrics" in m else {}))
 
     def simulate_stage() -> dict:
         if cfg.interaction is None:

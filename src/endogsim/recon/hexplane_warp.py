@@ -23,6 +23,13 @@ from endogsim.warp_runtime import float_vector, launch_split, n_bands, warp_arra
 
 __all__ = ["hexplane_features_warp"]
 
+#: Channels per plane the kernels are instantiated for at import (DeformationConfig's feature_dim: the
+#: default and the quality preset's); another count instantiates them on first use (and rebuilds the module).
+COMPILED_CHANNELS = (16, 32)
+
+# The gradients are written by hand (hexplane_backward): Warp need not generate adjoint code.
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _cell_coordinate(u: float, size: int):
@@ -152,6 +159,15 @@ def hexplane_backward(
             ds_dy = (1.0 - wx) * (c10 - c00) + wx * (c11 - c01)
             grad_coords[n, axis_a[j]] = grad_coords[n, axis_a[j]] + wp.dot(gs, ds_dx) * dxu
             grad_coords[n, axis_b[j]] = grad_coords[n, axis_b[j]] + wp.dot(gs, ds_dy) * dyv
+
+
+# Declared here so that the module is the same in every process (built once per machine): Warp builds a
+# module again whenever a generic kernel meets new argument types (see rasterize_warp).
+for _c in COMPILED_CHANNELS:
+    _vec = float_vector(_c)
+    wp.overload(hexplane_forward, {"planes": wp.array(dtype=_vec), "ones": _vec, "features": wp.array(dtype=_vec)})
+    wp.overload(hexplane_backward, {"planes": wp.array(dtype=_vec), "grad_features": wp.array(dtype=_vec),
+                                    "grad_planes": wp.array(dtype=_vec)})
 
 
 class _HexPlaneSample(torch.autograd.Function):
