@@ -405,14 +405,14 @@ def test_trials_side_by_side_fit_in_half_the_available_memory(monkeypatch):
 def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path, monkeypatch):
     """The same through identification with real simulations (Warp on the CPU from several threads at
     once): the intervals of ``tiny`` (3 frames) with 3 trials at a time equal those of one at a time."""
-    import endogsim.identify.optimize as optimize
     from endogsim.identify import IdentifyConfig, run_identify
+    from endogsim.scene.folder import SimScene
     from endogsim.synth import synthesize
 
     folder = synthesize("tiny", tmp_path / "tiny", frames=3)
     got = {}
     for workers in (1, 3):
-        monkeypatch.setattr(optimize, "independent_runs", lambda device, bytes_per_run=0, w=workers: w)
+        monkeypatch.setattr(SimScene, "independent_simulations", lambda self, w=workers: w)
         m = run_identify(folder, tmp_path / f"run{workers}", init="prior",
                          config=IdentifyConfig(iters=1, intervals=True), video=False)
         got[workers] = (m["materials"], m["intervals"], m["identifiable"])

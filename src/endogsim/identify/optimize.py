@@ -45,7 +45,6 @@ from endogsim.materials.field import MaterialField, MaterialParams, MaterialReco
 from endogsim.physics import max_stable_E
 from endogsim.scene.folder import SimScene, coarsened
 from endogsim.scene.forward import in_view, render_sequence, simulate_materials
-from endogsim.warp_runtime import independent_runs, simulation_bytes
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
@@ -414,8 +413,7 @@ def identify(
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
-                workers=independent_runs(problem.mpm.device, simulation_bytes(
-                    len(problem.particles), problem.num_frames, problem.mpm.grid_res)))
+                workers=problem.independent_simulations())
         ident = identified_field(init_field, final, intervals)
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),

@@ -221,7 +221,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.pipeline.run import run_pipeline
     from endogsim.scene.folder import load_sim_scene
     from endogsim.scene.forward import render_sequence
-    from endogsim.warp_runtime import independent_runs, run_independent, simulation_bytes
+    from endogsim.warp_runtime import run_independent
 
     cfg = config or ValidateConfig()
     data, out = Path(data), Path(out)
@@ -267,8 +267,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         scene.simulator().engine  # noqa: B018 - builds it
         (res, renders["prediction"]), (_, renders["prior"]) = run_independent(
             [partial(simulate_and_render, calibrated, True), partial(simulate_and_render, prior, False)],
-            independent_runs(scene.mpm.device, simulation_bytes(len(scene.particles), scene.num_frames,
-                                                                scene.mpm.grid_res)))
+            scene.independent_simulations())
         with torch.no_grad():
             held = res.positions.clone(), res.F.clone()
             held[0][T_train - 1:] = res.positions[T_train - 1]

@@ -105,6 +105,14 @@ class SimScene:
             self._simulator = Simulator(self.particles, self.scenario, self.mpm, self.num_frames)
         return self._simulator
 
+    def independent_simulations(self) -> int:
+        """How many simulations of this scene to run at a time (e.g. an interval's trials): one per torch
+        thread on a CPU, as many as half the free memory holds (:func:`~endogsim.warp_runtime.independent_runs`)."""
+        from endogsim.warp_runtime import independent_runs, simulation_bytes
+
+        run_bytes = simulation_bytes(len(self.particles), self.num_frames, self.mpm.grid_res)
+        return independent_runs(self.mpm.device, run_bytes)
+
     @property
     def has_ground_truth(self) -> bool:
         """Whether every deformable object has ground-truth E and nu (synthesized scenes; not a real video's
