@@ -103,8 +103,9 @@ def independent_runs(device: str, bytes_per_run: int = 0) -> int:
 
 def simulation_bytes(num_particles: int, num_frames: int, grid_res: int) -> int:
     """Memory (bytes) one simulation keeps while it runs: every frame's particle positions and deformation
-    gradients (float32) and its grid (mass, momentum, velocity, collider marks)."""
-    return 4 * (num_frames * num_particles * 12 + grid_res ** 3 * 12)
+    gradients (float32), its particle-grid transfer buffers and its grid (mass, momentum, velocity, collider
+    marks)."""
+    return 4 * (num_frames * num_particles * 12 + num_particles * 25 + grid_res ** 3 * 12)
 
 
 def available_memory() -> int | None:

@@ -8,7 +8,7 @@ times.
 
 Why segments are taped during backward only (never across the whole forward): Warp replays adjoints with
 arrays' *current* contents, so every substep inside a taped segment writes fresh buffers (``substeps + 1``
-particle states and ``substeps`` grids).
+particle states, ``substeps`` grids and particle-grid transfer buffers).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import warp as wp
 
 from endogsim.errors import SimulationError
 from endogsim.physics import kernels as K
+from endogsim.physics import transfer_adjoints as A
 from endogsim.physics.config import NORMAL_KINDS, MPMConfig, Scenario
 from endogsim.physics.particles import Particles
 from endogsim.warp_runtime import init_warp
@@ -99,15 +100,26 @@ def set_state_grads(s: K.ParticleState, tensors) -> None:
         wp.copy(a.grad, _from_torch(t, a))
 
 
+def alloc_transfer(P: int, device: str, grad: bool) -> K.ParticleTransfer:
+    t = K.ParticleTransfer()
+    t.mass = wp.zeros(P, dtype=float, device=device, requires_grad=grad)
+    t.momentum = wp.zeros(P, dtype=wp.vec3, device=device, requires_grad=grad)
+    t.affine = wp.zeros(P, dtype=wp.mat33, device=device, requires_grad=grad)
+    t.v = wp.zeros(P, dtype=wp.vec3, device=device, requires_grad=grad)
+    t.C = wp.zeros(P, dtype=wp.mat33, device=device, requires_grad=grad)
+    return t
+
+
 @dataclass
 class GridBuffers:
-    """One substep's grid and collider marks."""
+    """One substep's grid, collider marks and particle-grid transfer buffers."""
 
     grid: K.GridState
     col: K.ColliderGrid
+    transfer: K.ParticleTransfer
 
     @staticmethod
-    def alloc(n: int, device: str, grad: bool, colliders: bool) -> "GridBuffers":
+    def alloc(n: int, P: int, device: str, grad: bool, colliders: bool) -> "GridBuffers":
         shape = (n, n, n)
         g = K.GridState()
         g.m = wp.zeros(shape, dtype=float, device=device, requires_grad=grad)
@@ -117,7 +129,7 @@ class GridBuffers:
         cshape = shape if colliders else (1, 1, 1)
         c.w = wp.zeros(cshape, dtype=float, device=device)
         c.mv = wp.zeros(cshape, dtype=wp.vec3, device=device)
-        return GridBuffers(g, c)
+        return GridBuffers(g, c, alloc_transfer(P, device, grad))
 
     def clear(self) -> None:
         # grid.v is fully overwritten by grid_update, so only the accumulators need zeroing.
@@ -186,7 +198,7 @@ class MPMEngine:
         bc_kind = wp.from_numpy(kinds, dtype=wp.int32, device=dev)
         bc_normal = wp.from_numpy(normals.astype(np.float32), dtype=wp.vec3, device=dev)
         if pinned.any():
-            # Pinned particles carry no mass (see kernels.p2g); the nodes they dominate at rest are held.
+            # Pinned particles carry no mass (see kernels.particle_momentum); the nodes they dominate at rest are held.
             x0_sim = wp.from_numpy(self.box.to_sim(torch.from_numpy(x0_world)).float().numpy(), dtype=wp.vec3, device=dev)
             w_pinned = wp.zeros((n,) * 3, dtype=float, device=dev)
             w_free = wp.zeros((n,) * 3, dtype=float, device=dev)
@@ -321,7 +333,9 @@ class MPMEngine:
         return np.zeros(3, np.int64), np.full(3, n - 1, np.int64)
 
     def substep(self, s_in: K.ParticleState, s_out: K.ParticleState, buf: GridBuffers, mats: K.MaterialTable,
-                step: Timestep, frame: int, sub: int) -> None:
+                step: Timestep, frame: int, sub: int, tape: wp.Tape | None = None) -> None:
+        """Advance ``s_in`` by one substep into ``s_out``. On a ``tape``, the stencil transfers record their
+        hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), the rest Warp's generated ones."""
         dev, dt = self.device, step.dt
         t = (frame * step.substeps + sub) * dt  # time at the start of this substep (s)
         if self.colliders:
@@ -329,8 +343,14 @@ class MPMEngine:
             for frames, radius in self.colliders:
                 wp.launch(K.collider_to_grid, dim=frames[0].shape[0], device=dev, inputs=[
                     frames[frame], frames[frame + 1], alpha, 1.0 / self.cfg.frame_dt, radius, self.domain, buf.col])
-        wp.launch(K.p2g, dim=self.P, device=dev,
-                  inputs=[s_in, self.particles, mats, self.forces, self.domain, t, dt, buf.grid])
+        tr, grid = buf.transfer, buf.grid
+        wp.launch(K.particle_momentum, dim=self.P, device=dev,
+                  inputs=[s_in, self.particles, mats, self.forces, self.domain, t, dt, tr])
+        wp.launch(K.p2g_scatter, dim=self.P, device=dev, inputs=[s_in.x, tr, self.domain, grid], record_tape=False)
+        if tape is not None:
+            tape.record_func(lambda: wp.launch(A.p2g_scatter_adjoint, dim=self.P, device=dev, inputs=[
+                s_in.x, tr, self.domain, grid.mv.grad, grid.m.grad, s_in.x.grad, tr.mass.grad, tr.momentum.grad,
+                tr.affine.grad]), arrays=[s_in.x, tr.mass, tr.momentum, tr.affine, grid.mv, grid.m])
         lo, hi = self.active_block(s_in.x)
         damping_factor = math.exp(-self.frame_damping[min(frame, self.T - 1)] * dt)
         v_max = 1.0 / (self.inv_dx * dt)  # one cell per substep (sim units)
@@ -340,8 +360,13 @@ class MPMEngine:
         held = K.HeldTargets()
         held.x0, held.x1 = self.held_frames[frame], self.held_frames[frame + 1]
         held.alpha_end, held.inv_frame_dt = (sub + 1) / step.substeps, 1.0 / self.cfg.frame_dt
-        wp.launch(K.g2p, dim=self.P, device=dev,
-                  inputs=[s_in, self.particles, mats, self.domain, buf.grid, held, dt, s_out])
+        wp.launch(K.g2p_gather, dim=self.P, device=dev, inputs=[s_in.x, self.domain, grid, tr], record_tape=False)
+        if tape is not None:
+            tape.record_func(lambda: wp.launch(A.g2p_gather_adjoint, dim=self.P, device=dev, inputs=[
+                s_in.x, self.domain, grid, tr, tr.v.grad, tr.C.grad, grid.v.grad, s_in.x.grad]),
+                arrays=[s_in.x, grid.v, tr.v, tr.C])
+        wp.launch(K.g2p_update, dim=self.P, device=dev,
+                  inputs=[s_in, self.particles, mats, self.domain, tr, held, dt, s_out])
 
     # -- untaped forward ---------------------------------------------------------------------------------
     def forward(self, x0: torch.Tensor, v0: torch.Tensor, mats: K.MaterialTable, step: Timestep,
@@ -353,7 +378,7 @@ class MPMEngine:
         """
         P, dev = self.P, self.device
         a, b = alloc_state(P, dev, False), alloc_state(P, dev, False)
-        buf = GridBuffers.alloc(self.n, dev, False, bool(self.colliders))
+        buf = GridBuffers.alloc(self.n, P, dev, False, bool(self.colliders))
         load_state(a, (x0, v0, torch.zeros(P, 3, 3), torch.eye(3).expand(P, 3, 3)))
         states = [save_state(a)]
         before_last = []
@@ -381,7 +406,7 @@ class MPMEngine:
             dev = self.device
             self._segments[n_sub] = SegmentBuffers(
                 [alloc_state(self.P, dev, True) for _ in range(n_sub + 1)],
-                [GridBuffers.alloc(self.n, dev, True, bool(self.colliders)) for _ in range(n_sub)])
+                [GridBuffers.alloc(self.n, self.P, dev, True, bool(self.colliders)) for _ in range(n_sub)])
         return self._segments[n_sub]
 
     def release_buffers(self) -> None:
@@ -413,7 +438,7 @@ class MPMEngine:
         try:
             with tape:
                 for i, g in enumerate(seg.grids):
-                    self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i)
+                    self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape)
             set_state_grads(seg.states[-1], adj_end)
             tape.backward()
         except BaseException:

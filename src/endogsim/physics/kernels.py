@@ -1,11 +1,20 @@
 """Warp kernels of one MLS-MPM substep (Hu et al. 2018), in sim-box units (the unit cube).
 
-One substep is: ``collider_to_grid`` (kinematic instruments) -> ``p2g`` (APIC transfer of mass and
-momentum, plus the elastic force) -> ``grid_update`` (momentum -> velocity, gravity, damping, boundary
-conditions) -> ``g2p`` (velocity, affine matrix C, F update, plasticity return mapping, advection).
+One substep is: ``collider_to_grid`` (kinematic instruments) -> ``particle_momentum`` (each particle's
+mass, momentum and MLS-MPM affine momentum, the elastic force included) -> ``p2g_scatter`` (APIC transfer to
+the grid) -> ``grid_update`` (momentum -> velocity, gravity, damping, boundary conditions) -> ``g2p_gather``
+(velocity and affine matrix C from the grid) -> ``g2p_update`` (F update, plasticity return mapping,
+advection).
+
+The two stencil transfers (``p2g_scatter``, ``g2p_gather``) have hand-written adjoints in
+:mod:`endogsim.physics.transfer_adjoints`: Warp's generated ones unroll the 27-node stencil with every
+intermediate kept, and took 4-6x their forward (measured: 60% of an identification iteration's kernel
+time). The per-particle kernels around them keep Warp's generated adjoints (the constitutive models,
+plasticity, anchors and held particles are differentiated by Warp).
 
 Inputs are packed in structs, Newton-style: :class:`ParticleState` (what a substep advances),
-:class:`ParticleModel` (what never changes in a rollout), :class:`MaterialTable` (per object id: moduli,
+:class:`ParticleTransfer` (what a substep carries between particles and grid), :class:`ParticleModel`
+(what never changes in a rollout), :class:`MaterialTable` (per object id: moduli,
 density, constitutive model, yield stress), :class:`ForceTable`, :class:`Domain` (grid geometry, boundary
 conditions, gravity) and :class:`GridState` / :class:`ColliderGrid` (per-substep grid buffers).
 
@@ -43,6 +52,19 @@ class ParticleState:
     v: wp.array(dtype=wp.vec3)
     C: wp.array(dtype=wp.mat33)
     F: wp.array(dtype=wp.mat33)
+
+
+@wp.struct
+class ParticleTransfer:
+    """What one substep carries between the particles and the grid (sim units), per particle: mass, momentum
+    (external forces applied), MLS-MPM affine momentum (mass C minus the stress term), and the velocity and
+    APIC matrix C gathered back from the grid. Fresh per taped substep, like the grids."""
+
+    mass: wp.array(dtype=float)
+    momentum: wp.array(dtype=wp.vec3)
+    affine: wp.array(dtype=wp.mat33)
+    v: wp.array(dtype=wp.vec3)
+    C: wp.array(dtype=wp.mat33)
 
 
 @wp.struct
@@ -146,6 +168,35 @@ def bspline_weights(fx: wp.vec3):
 
 
 @wp.func
+def bspline_derivatives(fx: wp.vec3):
+    """d/dfx of :func:`bspline_weights`, laid out the same (row r: stencil node r; column: axis)."""
+    d0 = fx - wp.vec3(1.5)
+    d1 = -2.0 * (fx - wp.vec3(1.0))
+    d2 = fx - wp.vec3(0.5)
+    return wp.mat33(d0[0], d0[1], d0[2], d1[0], d1[1], d1[2], d2[0], d2[1], d2[2])
+
+
+@wp.func
+def quadratic_stencil(x: wp.vec3, inv_dx: float, n: int):
+    """The quadratic B-spline stencil of position ``x``: its lowest node (:func:`stencil_base`), the offset
+    fx = x / dx - base (grid units) and the weights (:func:`bspline_weights`)."""
+    base = stencil_base(x, inv_dx, n)
+    fx = x * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    return base, fx, bspline_weights(fx)
+
+
+@wp.func
+def apic_node_terms(momentum: wp.vec3, affine: wp.mat33, fx: wp.vec3, dx: float):
+    """The particle's APIC momentum at stencil node ijk, m v + A (node - x) with node - x = (ijk - fx) dx,
+    split as q + i a0 + j a1 + k a2 (vector sums only): returns q, a0, a1, a2."""
+    q = momentum - dx * (affine * fx)
+    a0 = dx * wp.vec3(affine[0, 0], affine[1, 0], affine[2, 0])
+    a1 = dx * wp.vec3(affine[0, 1], affine[1, 1], affine[2, 1])
+    a2 = dx * wp.vec3(affine[0, 2], affine[1, 2], affine[2, 2])
+    return q, a0, a1, a2
+
+
+@wp.func
 def lame(E: float, nu: float):
     """Lame parameters (mu, lambda) of Young's modulus E and Poisson's ratio nu."""
     return wp.vec2(E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)))
@@ -218,7 +269,7 @@ def collider_to_grid(
 
 
 @wp.kernel
-def p2g(
+def particle_momentum(
     state: ParticleState,
     particles: ParticleModel,
     mats: MaterialTable,
@@ -226,9 +277,10 @@ def p2g(
     domain: Domain,
     t: float,
     dt: float,
-    grid: GridState,
+    out: ParticleTransfer,
 ):
-    """Particle to grid: APIC momentum, mass and the elastic force (MLS-MPM).
+    """Each particle's mass, momentum (external forces applied) and MLS-MPM affine momentum, the elastic
+    force included: affine = mass C - dt V 4 / dx^2 tau(F) (Hu et al. 2018).
 
     A pinned (anchored) particle passes on its elastic force but neither mass nor momentum: its inertia
     belongs to the fixed anatomy. Were its mass (at rest) averaged into a node shared with free particles,
@@ -244,11 +296,6 @@ def p2g(
         mass = 0.0
 
     inv_dx = domain.inv_dx
-    xp = state.x[p]
-    base = stencil_base(xp, inv_dx, domain.n)
-    fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
-
     model = mats.model[o]
     Fp = state.F[p]
     R = wp.identity(n=3, dtype=float)
@@ -267,14 +314,24 @@ def p2g(
                 vp = vp + forces.acc[r]
         elif t >= t0 and t < t1:
             vp = vp + dt * forces.acc[r]
+    out.mass[p] = mass
+    out.momentum[p] = mass * vp
+    out.affine[p] = affine
 
-    # Node momentum w (m v + A (node - x)) with node - x = (ijk - fx) dx, split as
-    # q + dx (i A_0 + j A_1 + k A_2): vector sums only, which keeps the unrolled adjoint small.
-    dx = 1.0 / inv_dx
-    q = mass * vp - dx * (affine * fx)
-    a0 = dx * wp.vec3(affine[0, 0], affine[1, 0], affine[2, 0])
-    a1 = dx * wp.vec3(affine[0, 1], affine[1, 1], affine[2, 1])
-    a2 = dx * wp.vec3(affine[0, 2], affine[1, 2], affine[2, 2])
+
+@wp.kernel(enable_backward=False)
+def p2g_scatter(x: wp.array(dtype=wp.vec3), transfer: ParticleTransfer, domain: Domain, grid: GridState):
+    """Particle to grid (APIC): node mass += w m, node momentum += w (m v + A (node - x)).
+
+    Its adjoint is :func:`endogsim.physics.transfer_adjoints.p2g_scatter_adjoint`.
+    """
+    p = wp.tid()
+    inv_dx = domain.inv_dx
+    base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
+    mass = transfer.mass[p]
+    affine = transfer.affine[p]
+
+    q, a0, a1, a2 = apic_node_terms(transfer.momentum[p], affine, fx, 1.0 / inv_dx)
     for i in range(3):
         qi = q + float(i) * a0
         for j in range(3):
@@ -359,30 +416,19 @@ def grid_update(
     grid.v[i, j, k] = v
 
 
-@wp.kernel
-def g2p(
-    state: ParticleState,
-    particles: ParticleModel,
-    mats: MaterialTable,
-    domain: Domain,
-    grid: GridState,
-    held: HeldTargets,
-    dt: float,
-    out: ParticleState,
-):
-    """Grid to particle: velocity, APIC affine matrix, F update with optional von Mises plasticity, advection.
+@wp.kernel(enable_backward=False)
+def g2p_gather(x: wp.array(dtype=wp.vec3), domain: Domain, grid: GridState, transfer: ParticleTransfer):
+    """Grid to particle: the velocity v = sum w v_node and the APIC matrix C = 4 / dx^2 sum w v_node
+    (node - x)^T at each particle.
 
-    Pinned particles stay where they are and held ones go where their instrument takes them (Dirichlet
-    conditions on particles); their F still follows the grid."""
+    Its adjoint is :func:`endogsim.physics.transfer_adjoints.g2p_gather_adjoint`.
+    """
     p = wp.tid()
     inv_dx = domain.inv_dx
-    xp = state.x[p]
-    base = stencil_base(xp, inv_dx, domain.n)
-    fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
+    base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
 
-    # C = 4 / dx^2 sum w v (node - x)^T with node - x = (ijk - fx) dx: accumulate sum w v i, sum w v j,
-    # sum w v k as vectors (cheaper, and a much smaller unrolled adjoint than 27 outer products).
+    # With node - x = (ijk - fx) dx: accumulate sum w v i, sum w v j, sum w v k as vectors (cheaper than
+    # 27 outer products).
     new_v = wp.vec3(0.0)
     si = wp.vec3(0.0)
     sj = wp.vec3(0.0)
@@ -396,7 +442,30 @@ def g2p(
                 si = si + float(i) * wv
                 sj = sj + float(j) * wv
                 sk = sk + float(k) * wv
-    new_C = (4.0 * inv_dx) * (wp.matrix_from_cols(si, sj, sk) - wp.outer(new_v, fx))
+    transfer.v[p] = new_v
+    transfer.C[p] = (4.0 * inv_dx) * (wp.matrix_from_cols(si, sj, sk) - wp.outer(new_v, fx))
+
+
+@wp.kernel
+def g2p_update(
+    state: ParticleState,
+    particles: ParticleModel,
+    mats: MaterialTable,
+    domain: Domain,
+    transfer: ParticleTransfer,
+    held: HeldTargets,
+    dt: float,
+    out: ParticleState,
+):
+    """The particle's new state from what :func:`g2p_gather` brought back: F update with optional von Mises
+    plasticity, advection.
+
+    Pinned particles stay where they are and held ones go where their instrument takes them (Dirichlet
+    conditions on particles); their F still follows the grid."""
+    p = wp.tid()
+    xp = state.x[p]
+    new_v = transfer.v[p]
+    new_C = transfer.C[p]
 
     F_new = (wp.identity(n=3, dtype=float) + dt * new_C) * state.F[p]
     o = particles.obj[p]
@@ -436,9 +505,7 @@ def split_weights_to_grid(
     """Splat each particle's B-spline weights onto the grid, flagged and other particles separately."""
     p = wp.tid()
     xp = x[p]
-    base = stencil_base(xp, inv_dx, n)
-    fx = xp * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
+    base, fx, W = quadratic_stencil(xp, inv_dx, n)
     for i in range(3):
         for j in range(3):
             for k in range(3):
