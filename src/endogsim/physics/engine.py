@@ -340,9 +340,10 @@ class MPMEngine:
         t = (frame * step.substeps + sub) * dt  # time at the start of this substep (s)
         if self.colliders:
             alpha = sub / step.substeps
-            for frames, radius in self.colliders:
+            for frames, radius in self.colliders:  # kinematic: nothing to differentiate, kept off the tape
                 wp.launch(K.collider_to_grid, dim=frames[0].shape[0], device=dev, inputs=[
-                    frames[frame], frames[frame + 1], alpha, 1.0 / self.cfg.frame_dt, radius, self.domain, buf.col])
+                    frames[frame], frames[frame + 1], alpha, 1.0 / self.cfg.frame_dt, radius, self.domain, buf.col],
+                    record_tape=False)
         tr, grid = buf.transfer, buf.grid
         wp.launch(K.particle_momentum, dim=self.P, device=dev,
                   inputs=[s_in, self.particles, mats, self.forces, self.domain, t, dt, tr])

@@ -240,7 +240,7 @@ def von_mises_return(F: wp.mat33, yield_stress: float, mu: float):
     return F_el
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def collider_to_grid(
     col_x0: wp.array(dtype=wp.vec3),
     col_x1: wp.array(dtype=wp.vec3),
@@ -493,7 +493,7 @@ def g2p_update(
     out.F[p] = F_new
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def split_weights_to_grid(
     x: wp.array(dtype=wp.vec3),
     flag: wp.array(dtype=wp.int32),
@@ -516,7 +516,7 @@ def split_weights_to_grid(
                     wp.atomic_add(w_other, base[0] + i, base[1] + j, base[2] + k, w)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def dominated_nodes_to_bc(
     w_flagged: wp.array3d(dtype=float),
     w_other: wp.array3d(dtype=float),
