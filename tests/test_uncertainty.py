@@ -402,6 +402,7 @@ def test_trials_side_by_side_fit_in_half_the_available_memory(monkeypatch):
     assert runtime.independent_runs("cpu", run) == 1 and runtime.independent_runs("cuda", run) == 1
 
 
+@pytest.mark.slow  # 70 s on a 2-core CPU; the synthetic-loss test above covers the scheduling by default
 def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path, monkeypatch):
     """The same through identification with real simulations (Warp on the CPU from several threads at
     once): the intervals of ``tiny`` (3 frames) with 3 trials at a time equal those of one at a time."""
