@@ -168,7 +168,7 @@ def test_hand_written_transfer_adjoints_match_pytorch_autograd():
 
     from endogsim.physics import kernels as K
     from endogsim.physics import transfer_adjoints as A
-    from endogsim.physics.reference import _flat_index, _g2p, _weights
+    from endogsim.physics.reference import _g2p, _p2g, _weights
 
     g, x, mass, momentum, affine, grid_v, d, tr, grid = _transfer_case()
     P, n = x.shape[0], grid_v.shape[0]
@@ -178,14 +178,11 @@ def test_hand_written_transfer_adjoints_match_pytorch_autograd():
 
     # PyTorch: the same two transfers, differentiated by autograd.
     xd, md, pd, ad, vd = (t.double().requires_grad_() for t in (x, mass, momentum, affine, grid_v))
-    base, w, dpos = _weights(xd * n)
-    idx = _flat_index(base, n).reshape(-1)
-    node_mom = pd[:, None] + torch.einsum("nij,nkj->nki", ad, dpos / n)
-    gm = torch.zeros(n ** 3, dtype=torch.float64).index_add(0, idx, (w * md[:, None]).reshape(-1))
-    gmv = torch.zeros(n ** 3, 3, dtype=torch.float64).index_add(0, idx, (w[..., None] * node_mom).reshape(-1, 3))
+    stencil = _weights(xd * n)
+    gm, gmv = _p2g(md, pd, ad, n, 1.0 / n, stencil)
     scatter_loss = (gmv * adj_mv.reshape(-1, 3).double()).sum() + (gm * adj_m.reshape(-1).double()).sum()
     ref_scatter = torch.autograd.grad(scatter_loss, (xd, md, pd, ad), retain_graph=True)
-    v, C = _g2p(vd.reshape(-1, 3), n, float(n), (base, w, dpos))
+    v, C = _g2p(vd.reshape(-1, 3), n, float(n), stencil)
     gather_loss = (v * adj_v.double()).sum() + (C * adj_C.double()).sum()
     ref_gather = torch.autograd.grad(gather_loss, (xd, vd))
 

@@ -104,6 +104,17 @@ def _flat_index(base: torch.Tensor, n: int) -> torch.Tensor:
     return (idx[..., 0] * n + idx[..., 1]) * n + idx[..., 2]
 
 
+def _p2g(mass, momentum, affine, n, dx, stencil):
+    """APIC particle to grid: node masses [n^3] and momenta [n^3, 3] of particles with mass [N], momentum
+    [N, 3] and affine momentum [N, 3, 3] (node momentum += w (m v + A (node - x)))."""
+    base, w, dpos = stencil
+    idx = _flat_index(base, n).reshape(-1)
+    node_mom = momentum[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)
+    gm = torch.zeros(n ** 3, dtype=mass.dtype).index_add_(0, idx, (w * mass[:, None]).reshape(-1))
+    gmv = torch.zeros(n ** 3, 3, dtype=mass.dtype).index_add_(0, idx, (w[..., None] * node_mom).reshape(-1, 3))
+    return gm, gmv
+
+
 def _g2p(gv, n, inv_dx, stencil):
     base, w, dpos = stencil
     idx = _flat_index(base, n)
@@ -167,13 +178,10 @@ def run_mpm(p: MPMProblem, progress=None) -> MPMResult:
         for sub in range(p.substeps):
             xg = x * inv_dx
             base, w, dpos = _weights(xg)
-            idx = _flat_index(base, n1)
             stress = stress_torch(model, F, mu, lam)
             stress = -dt * 4 * inv_dx * inv_dx * vol[:, None, None] * stress
             affine = stress + mass_free[:, None, None] * C
-            mom = mass_free[:, None, None] * v[:, None, :] + torch.einsum("nij,nkj->nki", affine, dpos * dx)
-            gm = torch.zeros(n1 ** 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w * mass_free[:, None]).reshape(-1))
-            gmv = torch.zeros(n1 ** 3, 3, dtype=dtype).index_add_(0, idx.reshape(-1), (w[..., None] * mom).reshape(-1, 3))
+            gm, gmv = _p2g(mass_free, mass_free[:, None] * v, affine, n1, dx, (base, w, dpos))
             has = gm > 1e-12
             gv = torch.zeros_like(gmv)
             gv[has] = gmv[has] / gm[has, None]
