@@ -9,6 +9,10 @@ times.
 Why segments are taped during backward only (never across the whole forward): Warp replays adjoints with
 arrays' *current* contents, so every substep inside a taped segment writes fresh buffers (``substeps + 1``
 particle states, ``substeps`` grids and particle-grid transfer buffers).
+
+A segment is recorded on a tape of its own (:meth:`MPMEngine.record_segment`; never Warp's global tape,
+which every thread's launches would join), so the next segment back can be recomputed on a second core
+while the adjoints of this one run (:meth:`MPMEngine.pull_back`; :mod:`endogsim.physics.rollout`).
 """
 
 from __future__ import annotations
@@ -337,6 +341,14 @@ class MPMEngine:
         """Advance ``s_in`` by one substep into ``s_out``. On a ``tape``, the stencil transfers record their
         hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), the rest Warp's generated ones."""
         dev, dt = self.device, step.dt
+
+        def launch(kernel, dim, inputs) -> None:
+            """A launch whose adjoint is Warp's generated one: recorded on ``tape`` (explicitly, not through
+            Warp's global tape)."""
+            wp.launch(kernel, dim=dim, device=dev, inputs=inputs, record_tape=False)
+            if tape is not None:
+                tape.record_launch(kernel, dim, 0, inputs, [], dev)
+
         t = (frame * step.substeps + sub) * dt  # time at the start of this substep (s)
         if self.colliders:
             alpha = sub / step.substeps
@@ -345,17 +357,16 @@ class MPMEngine:
                     frames[frame], frames[frame + 1], alpha, 1.0 / self.cfg.frame_dt, radius, self.domain, buf.col],
                     record_tape=False)
         tr, grid = buf.transfer, buf.grid
-        wp.launch(K.particle_momentum, dim=self.P, device=dev,
-                  inputs=[s_in, self.particles, mats, self.forces, self.domain, t, dt, tr])
+        launch(K.particle_momentum, self.P, [s_in, self.particles, mats, self.forces, self.domain, t, dt, tr])
         wp.launch(K.p2g_scatter, dim=self.P, device=dev, inputs=[s_in.x, tr, self.domain, grid], record_tape=False)
         if tape is not None:
             tape.record_func(lambda: wp.launch(A.p2g_scatter_adjoint, dim=self.P, device=dev, inputs=[
                 s_in.x, tr, self.domain, grid.mv.grad, grid.m.grad, s_in.x.grad, tr.mass.grad, tr.momentum.grad,
-                tr.affine.grad]), arrays=[s_in.x, tr.mass, tr.momentum, tr.affine, grid.mv, grid.m])
+                tr.affine.grad], record_tape=False), arrays=[s_in.x, tr.mass, tr.momentum, tr.affine, grid.mv, grid.m])
         lo, hi = self.active_block(s_in.x)
         damping_factor = math.exp(-self.frame_damping[min(frame, self.T - 1)] * dt)
         v_max = 1.0 / (self.inv_dx * dt)  # one cell per substep (sim units)
-        wp.launch(K.grid_update, dim=tuple(int(h - l + 1) for l, h in zip(lo, hi)), device=dev, inputs=[
+        launch(K.grid_update, tuple(int(h - l + 1) for l, h in zip(lo, hi)), [
             buf.grid, buf.col, 1 if self.colliders else 0, self.domain, dt, damping_factor, v_max,
             wp.vec3i(*[int(v) for v in lo])])
         held = K.HeldTargets()
@@ -364,10 +375,9 @@ class MPMEngine:
         wp.launch(K.g2p_gather, dim=self.P, device=dev, inputs=[s_in.x, self.domain, grid, tr], record_tape=False)
         if tape is not None:
             tape.record_func(lambda: wp.launch(A.g2p_gather_adjoint, dim=self.P, device=dev, inputs=[
-                s_in.x, self.domain, grid, tr, tr.v.grad, tr.C.grad, grid.v.grad, s_in.x.grad]),
+                s_in.x, self.domain, grid, tr, tr.v.grad, tr.C.grad, grid.v.grad, s_in.x.grad], record_tape=False),
                 arrays=[s_in.x, grid.v, tr.v, tr.C])
-        wp.launch(K.g2p_update, dim=self.P, device=dev,
-                  inputs=[s_in, self.particles, mats, self.domain, tr, held, dt, s_out])
+        launch(K.g2p_update, self.P, [s_in, self.particles, mats, self.domain, tr, held, dt, s_out])
 
     # -- untaped forward ---------------------------------------------------------------------------------
     def forward(self, x0: torch.Tensor, v0: torch.Tensor, mats: K.MaterialTable, step: Timestep,
@@ -399,27 +409,35 @@ class MPMEngine:
         return states, before_last
 
     # -- taped segment and its adjoint -------------------------------------------------------------------
-    def segment_buffers(self, n_sub: int) -> SegmentBuffers:
-        """Buffers for a taped segment of ``n_sub`` substeps, kept for the next call of the same size (free
-        them with :meth:`release_buffers`)."""
-        if n_sub not in self._segments:
-            self._segments.clear()  # free the old buffers before allocating new ones
+    def segment_buffers(self, n_sub: int, count: int = 1) -> list[SegmentBuffers]:
+        """``count`` buffer sets for taped segments of ``n_sub`` substeps, kept for the next call of the same
+        size (free them with :meth:`release_buffers`)."""
+        sets = self._segments.get(n_sub, [])
+        if len(sets) < count:
+            if not sets:
+                self._segments.clear()  # free the old buffers before allocating new ones
             dev = self.device
-            self._segments[n_sub] = SegmentBuffers(
+            sets = sets + [SegmentBuffers(
                 [alloc_state(self.P, dev, True) for _ in range(n_sub + 1)],
                 [GridBuffers.alloc(self.n, self.P, dev, True, bool(self.colliders)) for _ in range(n_sub)])
-        return self._segments[n_sub]
+                for _ in range(count - len(sets))]
+            self._segments[n_sub] = sets
+        return sets[:count]
+
+    def segment_bytes(self, n_sub: int) -> int:
+        """Memory (bytes) of one buffer set of :meth:`segment_buffers` (values and adjoints, float32)."""
+        n3 = self.n ** 3
+        per_substep = 2 * 4 * (self.P * (24 + 25) + n3 * 7) + 4 * n3 * (4 if self.colliders else 0)
+        return n_sub * per_substep + 2 * 4 * self.P * 24
 
     def release_buffers(self) -> None:
         """Free the taped-segment buffers."""
         self._segments.clear()
 
-    def backprop_segment(self, seg: SegmentBuffers, mats: K.MaterialTable, step: Timestep, start, adj_end,
-                         frame: int, first_sub: int):
-        """Recompute ``len(seg.grids)`` substeps of ``frame`` from ``start`` on a tape and pull ``adj_end`` back.
-
-        Returns the adjoint of the start state (x, v, C, F) and of the differentiable material arrays.
-        """
+    def record_segment(self, seg: SegmentBuffers, mats: K.MaterialTable, step: Timestep, start, frame: int,
+                       first_sub: int) -> wp.Tape:
+        """Recompute ``len(seg.grids)`` substeps of ``frame`` from ``start`` into ``seg``, recorded on a tape of
+        their own (returned; :meth:`pull_back` runs it backwards)."""
         # A fresh buffer set is all zeros. Warp 1.19 consumes (zeroes) the adjoints of arrays written by
         # plain stores during backward, so a used set only needs the tape input (state 0) and the atomically
         # accumulated grid adjoints zeroed. (The multi-frame gradient tests check this against finite
@@ -431,15 +449,26 @@ class MPMEngine:
                 g.clear()
                 g.zero_accumulated_grads()
         seg.used = True
-        diff = self.differentiable_arrays(mats)
-        for m in diff:
-            m.grad.zero_()
         load_state(seg.states[0], start)
         tape = wp.Tape()
         try:
-            with tape:
-                for i, g in enumerate(seg.grids):
-                    self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape)
+            for i, g in enumerate(seg.grids):
+                self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape)
+        except BaseException:
+            self.release_buffers()  # never reuse buffers a failed recording left half written
+            raise
+        return tape
+
+    def pull_back(self, seg: SegmentBuffers, tape: wp.Tape, mats: K.MaterialTable, adj_end):
+        """Pull ``adj_end`` (adjoint of the segment's last state: x, v, C, F) back through ``tape`` (from
+        :meth:`record_segment` into ``seg``).
+
+        Returns the adjoint of the start state (x, v, C, F) and of the differentiable material arrays.
+        """
+        diff = self.differentiable_arrays(mats)
+        for m in diff:
+            m.grad.zero_()
+        try:
             set_state_grads(seg.states[-1], adj_end)
             tape.backward()
         except BaseException:
@@ -449,3 +478,8 @@ class MPMEngine:
         adj_mats = tuple(as_torch(m.grad).clone().cpu() for m in diff)
         tape.reset()
         return adj_start, adj_mats
+
+    def backprop_segment(self, seg: SegmentBuffers, mats: K.MaterialTable, step: Timestep, start, adj_end,
+                         frame: int, first_sub: int):
+        """:meth:`record_segment` then :meth:`pull_back`: the adjoints of the start state and the materials."""
+        return self.pull_back(seg, self.record_segment(seg, mats, step, start, frame, first_sub), mats, adj_end)

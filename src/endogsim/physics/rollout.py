@@ -17,6 +17,11 @@
                       pass stores the state at each frame; the backward pass recomputes one frame at a time
                       on a Warp tape and carries the adjoint of the state to the frame before.
 
+    The backward pass of every mode recomputes each frame it pulls adjoints through (a third of its time).
+    With two or more torch threads on a CPU it recomputes the next frame back on a second core while the
+    adjoints of this one run (:class:`_SegmentPipeline`): the same kernels on the same inputs, so the same
+    gradients to the last bit, for a second set of segment buffers when the memory holds it.
+
   - :class:`Simulator`: the same for a set-up that is simulated many times (identification): the engine's
     static arrays and taped-segment buffers are built once.
 
@@ -25,6 +30,7 @@ The substep count of every rollout follows the CFL rule for its materials (:mod:
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -81,33 +87,123 @@ class _MPMRolloutFn(torch.autograd.Function):
         zeros_v, zeros_C = torch.zeros(P, 3), torch.zeros(P, 3, 3)
         adj_x0, adj_v0 = g_x[0].clone(), torch.zeros(P, 3)
 
-        seg = eng.segment_buffers(1 if mode == "last_substep" else step.substeps) if T > 1 else None
-        carry = None  # "full": adjoint of the state at the end of the frame being processed
-        for f in range(T - 1, 0, -1):
-            adj_end = [g_x[f].clone(), zeros_v.clone(), zeros_C.clone(), g_F[f].clone()]
-            if mode == "full" and carry is not None:
-                adj_end = [a + c for a, c in zip(adj_end, carry)]
-            if not any(bool(a.abs().max() > 0) for a in adj_end):
-                carry = None if mode != "full" else [torch.zeros_like(a) for a in adj_end]
-                continue
+        def segment(f: int):
+            """(start state, first substep) of the segment that ends at frame f."""
             if mode == "last_substep":
-                start, first = ctx.before_last[f - 1], step.substeps - 1
-            else:
-                start, first = ctx.states[f - 1], 0
-            adj_start, adj_m = eng.backprop_segment(seg, mats, step, start, adj_end, f - 1, first)
-            _check_adjoints(f, adj_start, adj_m)
-            for acc, a in zip(g_mats, adj_m):
-                acc += a.double()
-            if mode == "full":
-                carry = list(adj_start)
-            elif f == 1 and mode == "frame":
-                adj_x0 += adj_start[0]
-                adj_v0 += adj_start[1]
+                return ctx.before_last[f - 1], step.substeps - 1
+            return ctx.states[f - 1], 0
+
+        # The frames whose adjoint will not be zero (recomputed ahead; the loop below decides).
+        outputs = [f for f in range(T - 1, 0, -1) if bool(g_x[f].abs().max() > 0) or bool(g_F[f].abs().max() > 0)]
+        ahead = [f for f in range(T - 1, 0, -1) if f <= outputs[0]] if mode == "full" and outputs else outputs
+        pipe = _SegmentPipeline(eng, mats, step, 1 if mode == "last_substep" else step.substeps, segment,
+                                ahead) if T > 1 else None
+        carry = None  # "full": adjoint of the state at the end of the frame being processed
+        try:
+            for f in range(T - 1, 0, -1):
+                adj_end = [g_x[f].clone(), zeros_v.clone(), zeros_C.clone(), g_F[f].clone()]
+                if mode == "full" and carry is not None:
+                    adj_end = [a + c for a, c in zip(adj_end, carry)]
+                if not any(bool(a.abs().max() > 0) for a in adj_end):
+                    pipe.skip(f)
+                    carry = None if mode != "full" else [torch.zeros_like(a) for a in adj_end]
+                    continue
+                adj_start, adj_m = pipe.pull_back(f, adj_end)
+                _check_adjoints(f, adj_start, adj_m)
+                for acc, a in zip(g_mats, adj_m):
+                    acc += a.double()
+                if mode == "full":
+                    carry = list(adj_start)
+                elif f == 1 and mode == "frame":
+                    adj_x0 += adj_start[0]
+                    adj_v0 += adj_start[1]
+        finally:
+            if pipe is not None:
+                pipe.close()
         if mode == "full" and carry is not None:
             adj_x0 += carry[0]
             adj_v0 += carry[1]
         grads = tuple(g.to(d.dtype).to(d.device) for g, d in zip(g_mats, ctx.diff))
         return (adj_x0.to(out_device), adj_v0.to(out_device), None, None, None, None, *grads)
+
+
+class _SegmentPipeline:
+    """The backward pass's segments, each recomputed on a tape (:meth:`MPMEngine.record_segment`) and pulled
+    back (:meth:`MPMEngine.pull_back`), frame by frame from the last.
+
+    With two buffer sets, the segment of the next frame in ``ahead`` is recomputed on a second thread while
+    this one's adjoints run; Warp releases the GIL in its CPU launches, so the two use two cores. One set
+    (one torch thread, a CUDA device, or memory for one set only): each segment is recomputed when its turn
+    comes. Either way each segment is the same recomputation and the adjoints run in the same order: the
+    gradients are identical.
+
+    Args:
+        engine, mats, step: the rollout's.
+        n_sub: substeps per segment.
+        segment: frame f -> (start state, first substep) of the segment ending at f.
+        ahead: the frames expected to need a segment, in the order they come (a frame that turns out not
+            to is skipped, :meth:`skip`; one that was not expected is recomputed when it comes).
+    """
+
+    def __init__(self, engine: MPMEngine, mats, step: Timestep, n_sub: int, segment, ahead: list[int]):
+        self.engine, self.mats, self.step, self.segment = engine, mats, step, segment
+        self.ahead = list(ahead)
+        sets = 2 if self._second_set_fits(engine, n_sub) and len(self.ahead) > 1 else 1
+        self.free = engine.segment_buffers(n_sub, sets)
+        self.pending: dict[int, tuple[Future, object]] = {}
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="endogsim-segment") if sets > 1 else None
+
+    @staticmethod
+    def _second_set_fits(engine: MPMEngine, n_sub: int) -> bool:
+        from endogsim.warp_runtime import available_memory
+
+        if engine.device != "cpu" or torch.get_num_threads() < 2:
+            return False
+        free = available_memory()
+        return free is None or 2 * engine.segment_bytes(n_sub) < 0.5 * free
+
+    def _record(self, f: int, seg):
+        start, first = self.segment(f)
+        return self.engine.record_segment(seg, self.mats, self.step, start, f - 1, first)
+
+    def _prefetch(self, after: int) -> None:
+        """Start recomputing the first frame of ``ahead`` below ``after`` on the second thread."""
+        nxt = next((g for g in self.ahead if g < after), None)
+        if self.pool is not None and nxt is not None and nxt not in self.pending and self.free:
+            seg = self.free.pop()
+            self.pending[nxt] = (self.pool.submit(self._record, nxt, seg), seg)
+
+    def pull_back(self, f: int, adj_end):
+        """The adjoints of the start state and of the materials of the segment ending at frame f."""
+        if f in self.pending:
+            job, seg = self.pending.pop(f)
+            tape = job.result()
+        else:
+            seg = self.free.pop()
+            tape = self._record(f, seg)
+        self._prefetch(f)
+        try:
+            return self.engine.pull_back(seg, tape, self.mats, adj_end)
+        finally:
+            self.free.append(seg)
+
+    def skip(self, f: int) -> None:
+        """Frame f needs no segment after all: drop one recomputed for it."""
+        if f in self.pending:
+            job, seg = self.pending.pop(f)
+            job.result().reset()
+            self.free.append(seg)
+
+    def close(self) -> None:
+        """Wait for a recomputation still running (an error stops the pass before its frame comes)."""
+        for job, _ in self.pending.values():
+            try:
+                job.result()
+            except BaseException:  # noqa: BLE001 - the error that stopped the pass is the one raised
+                pass
+        self.pending.clear()
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
 
 
 @dataclass
