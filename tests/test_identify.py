@@ -123,6 +123,22 @@ def test_loss_is_least_near_the_true_material(problem):
         assert at_truth < loss(field_from_truth(problem, factor)), factor
 
 
+def test_the_optimums_loss_from_its_iteration_is_the_one_the_intervals_compare_with(problem):
+    """The intervals compare every trial with the optimum's per-frame loss, taken from the iteration that
+    evaluated it (differentiable rollout, renders on the autograd path): it must be the untaped
+    simulation's to the last bit, or the trials' noise would be measured against another simulation."""
+    from endogsim.identify.optimize import evaluate_loss, prepare_observations
+
+    cfg = fast_config()
+    obs, cam = prepare_observations(problem, cfg, None)
+    fld = field_from_truth(problem, 2.0)
+    params = fld.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
+    taped = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=True)
+    taped.total.backward()
+    plain = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=False)
+    assert len(plain.per_frame) > 2 and taped.per_frame == plain.per_frame
+
+
 def test_loss_decreases_and_E_moves_towards_the_truth(run3):
     res, _ = run3
     losses = [h["loss"] for h in res.history]

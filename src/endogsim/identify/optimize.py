@@ -358,7 +358,7 @@ def identify(
         if best is None or parts["total"] < best["loss"]:
             improved = best is None or parts["total"] < best["loss"] * (1 - cfg.tol)
             best = {"loss": parts["total"], "iteration": k, "log10_E": params.log10_E.detach().clone(),
-                    "nu_raw": params.nu_raw.detach().clone()}
+                    "nu_raw": params.nu_raw.detach().clone(), "per_frame": dict(value.per_frame)}
             stale = 0 if improved else stale + 1
         else:
             stale += 1
@@ -413,7 +413,8 @@ def identify(
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
-                workers=problem.independent_simulations())
+                workers=problem.independent_simulations(),
+                reference=best.get("per_frame"))  # (a checkpoint of an older run lacks it: evaluated again)
         ident = identified_field(init_field, final, intervals)
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),

@@ -374,6 +374,7 @@ def parameter_intervals(
     coarse_evaluate: Callable[[MaterialParams], dict[int, float]] | None = None,
     coarse_ratio: float | None = None,
     workers: int = 1,
+    reference: dict[int, float] | None = None,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -390,20 +391,19 @@ def parameter_intervals(
         coarse_ratio: this discretisation's grid over the coarse one's (> 1; with ``coarse_evaluate``).
         workers: trial simulations run at a time (:func:`~endogsim.warp_runtime.run_independent`; ``evaluate`` and
             ``coarse_evaluate`` must then be safe to call from several threads). The result does not depend on it.
+        reference: ``evaluate(params)`` when it is known already (the optimisation's iteration at the optimum
+            computed it), else None: it is evaluated first.
     """
-    # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
-    # (which build them) are not safe from two threads.
-    reference = evaluate(params)
+    if reference is None:
+        # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
+        # (which build them) are not safe from two threads.
+        reference = evaluate(params)
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     stop = _stop_z(threshold, significance)
     cancel = threading.Event()  # set when a trial fails: the other walks stop starting trials
-    coarse_loss = None
-    if coarse_evaluate is not None:
-        coarse_loss = _shared_loss(coarse_evaluate, cancel)
-        try:  # every coarse walk starts here; alone, it also builds the coarse simulator once
-            coarse_loss(params)
-        except EndoGSimError:
-            pass  # each walk meets the same failure (cached) and says so
+    # Every coarse walk starts at the optimum: the first to get there simulates it, the other waits for it
+    # (a failure there is each walk's, and each says so).
+    coarse_loss = None if coarse_evaluate is None else _shared_loss(coarse_evaluate, cancel)
 
     # Every slice's two sides and its coarse walk are independent simulations: run them all, ``workers``
     # at a time, then assemble each parameter's interval in order.
