@@ -1,6 +1,7 @@
 """NVIDIA Warp plumbing shared by every module that launches Warp kernels (the simulator in
 :mod:`endogsim.physics`, the CPU renderer in :mod:`endogsim.gaussians.rasterize_warp`, the HexPlane
-sampler in :mod:`endogsim.recon.hexplane_warp`): start-up, torch interop, and split launches.
+sampler in :mod:`endogsim.recon.hexplane_warp`): start-up, torch interop, split launches, and building the
+kernels of a later stage in another process while an earlier one runs (:func:`kernels_built_aside`).
 
 Warp runs a CPU launch serially, as native code, and releases the GIL while it runs; :func:`launch_split`
 therefore splits a launch over independent items (pixels, points) into interleaved bands, one per torch
@@ -12,23 +13,29 @@ band writes (accumulate into one buffer per band, then sum).
 from __future__ import annotations
 
 import functools
+import importlib
 import os
+import subprocess
 import sys
 import tempfile
 import threading
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
+from contextlib import contextmanager
 from typing import Callable, TypeVar
 
 import torch
 import warp as wp
 
-__all__ = ["init_warp", "warp_array", "warp_device", "float_vector", "n_bands", "launch_split", "independent_runs",
+__all__ = ["init_warp", "KERNEL_MODULES", "build_kernels", "kernels_built_aside", "warp_array", "warp_device",
+           "float_vector", "n_bands", "launch_split", "independent_runs",
            "run_independent", "check_cancelled", "Cancelled", "simulation_bytes", "available_memory"]
 
 _ready = False
 _POOL: ThreadPoolExecutor | None = None
 _LAUNCHED: set = set()  # (kernel, device, argument types) launched once already
 _FIRST_LAUNCH = threading.Lock()  # a first launch (and the pool) from one thread at a time
+_aside = False  # a kernels_built_aside process runs for this process
 R = TypeVar("R")
 
 
@@ -63,6 +70,65 @@ def _quiet_native_stderr(fn: Callable, drop: str) -> None:
         kept = [ln for ln in captured.read().decode(errors="replace").splitlines(keepends=True) if drop not in ln]
     if kept:
         sys.stderr.write("".join(kept))
+
+
+#: The Python modules that hold the pipeline's Warp kernels: the Gaussian renderer, the reconstruction's
+#: HexPlane sampler, the simulator, and the hand-written adjoints of its transfers (identification).
+KERNEL_MODULES = {
+    "render": "endogsim.gaussians.rasterize_warp",
+    "hexplane": "endogsim.recon.hexplane_warp",
+    "simulate": "endogsim.physics.kernels",
+    "adjoints": "endogsim.physics.transfer_adjoints",
+}
+
+
+def build_kernels(modules: Sequence[str], device: str = "cpu") -> None:
+    """Build the Warp kernels of the Python ``modules`` (names) for ``device``, or find them in Warp's kernel
+    cache (milliseconds): what their first launch would otherwise do."""
+    init_warp()
+    for name in modules:
+        wp.load_module(importlib.import_module(name), device=device)
+
+
+@contextmanager
+def kernels_built_aside(modules: Sequence[str]) -> Iterator[subprocess.Popen | None]:
+    """Build the CPU kernels of ``modules`` in a separate low-priority process while the body runs.
+
+    Warp builds a module's native code on its first launch, once per machine (its kernel cache keeps it):
+    20-30 s for the pipeline's kernels on a 2-core CPU, in the middle of a run that computes on one core.
+    A stage's kernels built aside while an earlier stage runs are found in the cache when it starts.
+    Nothing a run computes depends on it: a module the body reaches before the other process has written it
+    is built by the body as usual (Warp writes each build under a per-process name and renames it into
+    place, so the two never see half a module). The process ends with the body (stopped if it is still
+    building). Inside another ``kernels_built_aside`` (the demo runs the pipeline) it starts nothing.
+    """
+    global _aside
+    with _FIRST_LAUNCH:
+        start = bool(modules) and not _aside
+        _aside = _aside or start
+    if not start:
+        yield None
+        return
+    cmd = [sys.executable, "-c", "import sys; from endogsim.warp_runtime import build_kernels; "
+           "build_kernels(sys.argv[1:])", *modules]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    lower_priority = (lambda: os.nice(10)) if os.name == "posix" else None
+    try:
+        proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, preexec_fn=lower_priority)
+    except OSError:  # no process to spare: the body builds its kernels itself
+        proc = None
+    try:
+        yield proc
+    finally:
+        _aside = False
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def warp_array(t: torch.Tensor, dtype=None):

@@ -49,7 +49,8 @@ class DemoConfig:
         threads: torch threads (and Warp CPU bands) for the whole demo, or None for the process's setting. The
             thread count decides the order in which CPU reductions sum, and identification's nearly flat loss
             can turn an 8th-digit difference into another answer; 1 (the default) gives every machine the same
-            numbers (the demo's published figures are one-thread runs; a demo takes 1.5 min that way).
+            numbers (the demo's published figures are one-thread runs; a demo takes 2.5-3 min that way on a
+            2-core CPU, its second core building Warp's kernels on a machine's first run).
     """
 
     scene: str = "tiny"
@@ -102,11 +103,16 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
              on_stage: Callable[[str, str], None] | None = None) -> dict:
     """Run (or resume) the demo into ``out`` with ``cfg.threads`` torch threads; returns the summary (also
     written to ``out/summary.json``)."""
+    from endogsim.warp_runtime import KERNEL_MODULES, kernels_built_aside
+
     before = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     try:
-        summary = _run_demo(out, cfg, on_stage)
+        # The synthesis builds the simulator's kernels; the later stages' kernels are built meanwhile on
+        # a core the one-thread demo leaves idle (on a machine's first run, ~20 s of Warp builds).
+        with kernels_built_aside([KERNEL_MODULES[k] for k in ("render", "hexplane", "adjoints")]):
+            summary = _run_demo(out, cfg, on_stage)
     finally:
         torch.set_num_threads(before)
     return summary

@@ -130,7 +130,12 @@ def run_pipeline(
         from endogsim.scene.schema import load_scene_spec
 
         load_scene_spec(truth)  # a ground truth that cannot be read fails now, not after the reconstruction
-    with run_folder(out, "run"):
+    from endogsim.warp_runtime import KERNEL_MODULES, kernels_built_aside
+
+    # The reconstruction builds the renderer's and the HexPlane sampler's kernels; identification's are
+    # built meanwhile in another process (on a machine's first run).
+    aside = [KERNEL_MODULES[k] for k in ("simulate", "adjoints")] if cfg.identify.device == "cpu" else []
+    with run_folder(out, "run"), kernels_built_aside(aside):
         return _run_stages(data, out, cfg, truth, on_stage, stop_after, fresh)
 
 
