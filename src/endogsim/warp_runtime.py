@@ -109,14 +109,13 @@ def kernels_built_aside(modules: Sequence[str]) -> Iterator[subprocess.Popen | N
     if not start:
         yield None
         return
-    cmd = [sys.executable, "-c", "import sys; from endogsim.warp_runtime import build_kernels; "
-           "build_kernels(sys.argv[1:])", *modules]
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    lower_priority = (lambda: os.nice(10)) if os.name == "posix" else None
+    cmd = [sys.executable, "-c", "import os, sys\nif hasattr(os, 'nice'): os.nice(10)\n"
+           "from endogsim.warp_runtime import build_kernels\nbuild_kernels(sys.argv[1:])", *modules]
+    env = dict(os.environ, OMP_NUM_THREADS="1", CUDA_VISIBLE_DEVICES="")  # CPU kernels: no CUDA context
     try:
         proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, preexec_fn=lower_priority)
-    except OSError:  # no process to spare: the body builds its kernels itself
+                                stderr=subprocess.DEVNULL)
+    except (OSError, subprocess.SubprocessError):  # no process to spare: the body builds its kernels itself
         proc = None
     try:
         yield proc

@@ -414,7 +414,10 @@ def identify(
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
                 workers=problem.independent_simulations(),
-                reference=best.get("per_frame"))  # (a checkpoint of an older run lacks it: evaluated again)
+                # The optimum's loss from its iteration when this process ran one (its kernels are then
+                # built: the trials may start side by side); a run resumed with nothing left to iterate, or
+                # from an older checkpoint, evaluates it first, alone.
+                reference=best.get("per_frame") if done_here else None)
         ident = identified_field(init_field, final, intervals)
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),

@@ -191,7 +191,10 @@ class _SegmentPipeline:
         """Frame f needs no segment after all: drop one recomputed for it."""
         if f in self.pending:
             job, seg = self.pending.pop(f)
-            job.result().reset()
+            try:
+                job.result().reset()
+            except Exception:  # a recomputation the one-set pass would not have run: not its error
+                return  # (its buffer set is dropped: the recording left it half written)
             self.free.append(seg)
 
     def close(self) -> None:
@@ -199,7 +202,7 @@ class _SegmentPipeline:
         for job, _ in self.pending.values():
             try:
                 job.result()
-            except BaseException:  # noqa: BLE001 - the error that stopped the pass is the one raised
+            except Exception:  # the error that stopped the pass is the one raised
                 pass
         self.pending.clear()
         if self.pool is not None:
