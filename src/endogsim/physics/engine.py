@@ -478,8 +478,3 @@ class MPMEngine:
         adj_mats = tuple(as_torch(m.grad).clone().cpu() for m in diff)
         tape.reset()
         return adj_start, adj_mats
-
-    def backprop_segment(self, seg: SegmentBuffers, mats: K.MaterialTable, step: Timestep, start, adj_end,
-                         frame: int, first_sub: int):
-        """:meth:`record_segment` then :meth:`pull_back`: the adjoints of the start state and the materials."""
-        return self.pull_back(seg, self.record_segment(seg, mats, step, start, frame, first_sub), mats, adj_end)

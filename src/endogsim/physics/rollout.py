@@ -155,12 +155,11 @@ class _SegmentPipeline:
 
     @staticmethod
     def _second_set_fits(engine: MPMEngine, n_sub: int) -> bool:
-        from endogsim.warp_runtime import available_memory
+        """Two buffer sets may work side by side: the rule of any two simulations at a time (a CPU, two torch
+        threads, half the available memory holds both)."""
+        from endogsim.warp_runtime import independent_runs
 
-        if engine.device != "cpu" or torch.get_num_threads() < 2:
-            return False
-        free = available_memory()
-        return free is None or 2 * engine.segment_bytes(n_sub) < 0.5 * free
+        return independent_runs(engine.device, engine.segment_bytes(n_sub)) >= 2
 
     def _record(self, f: int, seg):
         start, first = self.segment(f)
