@@ -102,6 +102,8 @@ class IdentifyResult:
         intervals: the 90% interval and identifiability of every identified parameter
             (:mod:`endogsim.identify.uncertainty`); a parameter the video does not determine keeps its
             initial value in ``field``.
+        evaluation: ``evaluate(field)`` when :func:`identify` was given ``evaluate`` and computed it while the
+            intervals' last trials ran, else None.
     """
 
     field: MaterialField
@@ -114,6 +116,7 @@ class IdentifyResult:
     stopped: str = "iters"
     notes: list[str] = field(default_factory=list)
     intervals: list[ParameterInterval] = field(default_factory=list)
+    evaluation: object | None = None
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
@@ -254,6 +257,7 @@ def identify(
     progress: Callable[[int, int, dict], None] | None = None,
     stop_after: int | None = None,
     strict: bool = False,
+    evaluate: Callable[[MaterialField], object] | None = None,
 ) -> IdentifyResult:
     """Identify E and nu of the deformable objects of ``problem`` from its observed video.
 
@@ -267,6 +271,10 @@ def identify(
         stop_after: stop (as if interrupted) after this many iterations in this call; for tests.
         strict: refuse initial materials beyond the stability limit (explicit user request) instead of
             starting from the nearest stable value (an initialiser's guess).
+        evaluate: field -> its evaluation (e.g. :func:`endogsim.identify.report.evaluate_field`). When the
+            intervals' trials run side by side, the field their slices imply is evaluated while the coarse
+            walks run, and kept as ``IdentifyResult.evaluation`` if it is the identified field (the coarse
+            walks change it only where their error makes a parameter not identifiable).
     Returns:
         :class:`IdentifyResult` with the best iterate's materials.
     Raises:
@@ -387,6 +395,7 @@ def identify(
                      "step (a flat, stationary loss)")
 
     intervals: list[ParameterInterval] = []
+    evaluated: dict = {}  # {"field", "evaluation"}: the field the slices imply, evaluated during the intervals
     if best is None:  # optimisation off: the initial materials are the answer
         ident = MaterialField([r.model_copy() for r in init_field.records], meta=dict(init_field.meta))
     else:
@@ -405,6 +414,12 @@ def identify(
                 else:
                     coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
                         coarse, init_field, trial, obs, cam, cfg, grad=False).per_frame
+            workers = problem.independent_simulations()
+
+            def evaluate_implied(slices: list[ParameterInterval]) -> None:
+                fld = identified_field(init_field, final, slices)
+                evaluated.update(field=fld, evaluation=evaluate(fld))
+
             intervals = parameter_intervals(
                 final, {o: problem.labels[o].name for o in final.object_ids},
                 lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False).per_frame,
@@ -413,16 +428,30 @@ def identify(
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
-                workers=problem.independent_simulations(),
+                workers=workers,
                 # The optimum's loss from its iteration when this process ran one (its kernels are then
                 # built: the trials may start side by side); a run resumed with nothing left to iterate, or
                 # from an older checkpoint, evaluates it first, alone.
-                reference=best.get("per_frame") if done_here else None)
+                reference=best.get("per_frame") if done_here else None,
+                then=evaluate_implied if evaluate is not None and workers > 1 else None)
         ident = identified_field(init_field, final, intervals)
+    evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
                           best_loss=math.nan if best is None else float(best["loss"]),
-                          iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals)
+                          iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
+                          evaluation=evaluation)
+
+
+def same_simulation(a: MaterialField, b: MaterialField) -> bool:
+    """Whether two fields give the simulator the same materials, to the last bit (every object's E, nu,
+    density, constitutive model and yield stress): their simulations are then the same."""
+    ma, mb = a.simulator_materials(), b.simulator_materials()
+
+    def same(x: torch.Tensor, y: torch.Tensor) -> bool:  # NaN (an id without a record) equals NaN
+        return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
+
+    return all(same(getattr(ma, n), getattr(mb, n)) for n in ("E", "nu", "density", "model", "yield_stress"))
 
 
 #: The source of a material the video could not determine: its initial value is kept.

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from endogsim.determinism import deterministic
 from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
@@ -40,7 +41,8 @@ from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import render_sequence
 
-__all__ = ["Evaluation", "evaluate_field", "material_errors", "settling_record", "write_outputs"]
+__all__ = ["Evaluation", "evaluate_field", "cached_observed_flow", "material_errors", "settling_record",
+           "write_outputs"]
 
 FLOW_ERROR_RANGE = 1.0  # pixels mapped to the top of the colour scale in the video
 
@@ -72,6 +74,7 @@ class Evaluation:
     settling_left: float = 0.0
 
 
+@deterministic()  # the same numbers wherever it runs (identification evaluates it on a worker thread)
 def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
     """Simulate ``fld`` (no gradients; substeps from the CFL rule), render, and score it."""
     with torch.no_grad():
@@ -157,9 +160,19 @@ def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: n
                      for t in range(T)])
 
 
+def cached_observed_flow(run_dir: str | Path) -> np.ndarray | None:
+    """The observed flow identification cached in ``run_dir`` (None: none there)."""
+    path = Path(run_dir) / "observed_flow.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as d:
+        return d["flow"]
+
+
 def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult, config: IdentifyConfig,
                   init_name: str, video: bool = True, evaluate_init: bool = False) -> dict:
-    """Evaluate the identified field and write the run folder (see the module docstring). Returns metrics."""
+    """Evaluate the identified field (unless ``result.evaluation`` holds its evaluation) and write the run
+    folder (see the module docstring). Returns metrics."""
     from endogsim.io.video_writer import write_video
 
     run = Path(run_dir)
@@ -168,11 +181,10 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)
-    obs_flow = None
-    if (run / "observed_flow.npz").is_file():
-        with np.load(run / "observed_flow.npz") as d:
-            obs_flow = d["flow"]
-    ev = evaluate_field(problem, result.field, obs_flow)
+    obs_flow = cached_observed_flow(run)
+    ev = result.evaluation
+    if not isinstance(ev, Evaluation):
+        ev = evaluate_field(problem, result.field, obs_flow)
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {

@@ -10,7 +10,7 @@ import numpy as np
 from endogsim.errors import DataError, MaterialError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import CHECKPOINT_NAME, identify
-from endogsim.identify.report import write_outputs
+from endogsim.identify.report import cached_observed_flow, evaluate_field, write_outputs
 from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.materials.init import BACKENDS
@@ -83,7 +83,9 @@ def run_identify(
         pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device)
         fld, strict = initial_field(pb, init)
         check_field_objects(pb, fld, init)
-        result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict)
+        # The identified field is evaluated while the intervals' last trials run, where they run side by side.
+        result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict,
+                          evaluate=lambda f: evaluate_field(pb, f, cached_observed_flow(out)))
         return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)
 
 

@@ -40,7 +40,9 @@ safety factor F_s = 3, Roache's for a study of two grids whose order is not veri
 interval adds it to the statistical one side by side in quadrature, as independent errors (ASME V&V 20);
 the statistical interval is kept beside it, and it alone decides whether the video moved a parameter away
 from its prior. An interval that the discretisation's error stretches over the whole search box makes the
-parameter not identifiable.
+parameter not identifiable. A parameter whose statistical interval is the whole search box already has its
+discretisation error not measured: nothing added to it could change the interval or the verdict (on the
+real pulling clip that saved the two coarse walks, 130 s of simulation).
 """
 
 from __future__ import annotations
@@ -51,18 +53,20 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from functools import partial
+from typing import TypeVar
 
 import numpy as np
 import torch
 
 from endogsim.errors import EndoGSimError
 from endogsim.materials.field import MaterialParams
-from endogsim.warp_runtime import check_cancelled, run_independent
+from endogsim.warp_runtime import Cancelled, check_cancelled, run_independent
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
            "DiscretisationError", "paired_z", "critical_z", "significant_z", "interval_from_slice", "walk_slice",
            "walk_side", "slice_from_sides",
-           "identifiability", "discretisation_error", "widen", "parameter_intervals"]
+           "identifiability", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
+           "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
 LEVEL = 0.90
@@ -76,6 +80,7 @@ NU_STEPS = (0.02, 0.06, math.inf)
 #: grids whose order is not verified, 3, not the 1.25 he allows where it is.
 GCI_ORDER = 1.0
 GCI_SAFETY = 3.0
+R = TypeVar("R")
 
 
 @dataclass
@@ -100,7 +105,8 @@ class ParameterInterval:
             (:func:`significant_z`; None likewise).
         statistical_interval: [lo, hi] the interval from the loss's frame-to-frame noise alone (None: no
             discretisation error was measured, and ``interval`` is this one).
-        discretisation: :class:`DiscretisationError` as a dict (None: not measured).
+        discretisation: :class:`DiscretisationError` as a dict (None: not measured: no coarser simulation,
+            one that failed (``reason`` says so), or a statistical interval that is the whole search box).
     """
 
     object_id: int
@@ -312,8 +318,8 @@ def discretisation_error(best: float, steps: tuple[float, ...], box: tuple[float
 
     On each side the walk takes ``steps`` outward from ``best`` (as :func:`walk_slice`, clipped to ``box``)
     while the coarse loss keeps falling, and stops at the first value that is no lower, at the box's end or
-    at a simulation that fails (:class:`~endogsim.errors.EndoGSimError`). The coarse optimum is the least value evaluated, refined
-    by the parabola through it and its two neighbours when it has one on each side.
+    at a simulation that fails (:class:`~endogsim.errors.EndoGSimError`). The coarse optimum is the least
+    value evaluated, refined by the parabola through it and its two neighbours when it has one on each side.
 
     Args:
         best: the optimum at the identification's discretisation (slice coordinate).
@@ -324,23 +330,41 @@ def discretisation_error(best: float, steps: tuple[float, ...], box: tuple[float
     """
     if not ratio > 1:
         raise ValueError(f"a coarser discretisation has a grid ratio > 1, got {ratio}")
+    at_best = coarse_loss(best)  # each side starts there: simulated once
+    sides = [coarse_side(best, steps, box, lambda v: at_best if v == best else coarse_loss(v), side)
+             for side in (-1, 1)]
+    return discretisation_from_sides(best, ratio, *sides)
+
+
+#: One side of a coarse walk (:func:`coarse_side`): {value: coarse loss} (``best`` included) and whether a
+#: failed simulation ended it.
+CoarseSide = tuple[dict[float, float], bool]
+
+
+def coarse_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
+                coarse_loss: Callable[[float], float], side: int) -> CoarseSide:
+    """One side (-1: down, 1: up) of :func:`discretisation_error`'s walk. A failure of the simulation at
+    ``best`` itself is raised (there is no walk without it)."""
     points = {best: coarse_loss(best)}
-    stopped_short = {-1: False, 1: False}
-    for side in (-1, 1):
-        last_v, last_l = best, points[best]
-        for step in steps:
-            v = min(max(best + side * step, box[0]), box[1])
-            if abs(v - last_v) < 1e-9:
-                break  # the box ends here
-            try:
-                loss = coarse_loss(v)
-            except EndoGSimError:
-                stopped_short[side] = True
-                break
-            points[v] = loss
-            if not loss < last_l:
-                break
-            last_v, last_l = v, loss
+    last_v, last_l = best, points[best]
+    for step in steps:
+        v = min(max(best + side * step, box[0]), box[1])
+        if abs(v - last_v) < 1e-9:
+            break  # the box ends here
+        try:
+            loss = coarse_loss(v)
+        except EndoGSimError:
+            return points, True
+        points[v] = loss
+        if not loss < last_l:
+            break
+        last_v, last_l = v, loss
+    return points, False
+
+
+def discretisation_from_sides(best: float, ratio: float, down: CoarseSide, up: CoarseSide) -> DiscretisationError:
+    """The :class:`DiscretisationError` of the two sides walked by :func:`coarse_side`."""
+    points = {**down[0], **up[0]}
     xs = sorted(points)
     i = min(range(len(xs)), key=lambda k: (points[xs[k]], abs(xs[k] - best)))  # a tie: the nearer value
     x = xs[i]
@@ -349,11 +373,16 @@ def discretisation_error(best: float, steps: tuple[float, ...], box: tuple[float
         den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
         if den != 0:
             x = min(max(x1 - 0.5 * ((x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)) / den, x0), x2)
-    lower = (i == 0 and stopped_short[-1]) or (i == len(xs) - 1 and stopped_short[1])
+    lower = (i == 0 and down[1]) or (i == len(xs) - 1 and up[1])
     shift = x - best
     return DiscretisationError(ratio=float(ratio), coarse_best=float(x), shift=float(shift),
                                half_width=GCI_SAFETY * abs(shift) / (ratio ** GCI_ORDER - 1.0),
                                lower_bound=bool(lower), profile=[[v, points[v]] for v in points])
+
+
+def spans(interval: list[float], box: tuple[float, float]) -> bool:
+    """Whether ``interval`` is the whole of ``box`` (to 1e-9)."""
+    return interval[0] <= box[0] + 1e-9 and interval[1] >= box[1] - 1e-9
 
 
 def widen(interval: list[float], best: float, half_width: float, box: tuple[float, float]) -> list[float]:
@@ -375,6 +404,7 @@ def parameter_intervals(
     coarse_ratio: float | None = None,
     workers: int = 1,
     reference: dict[int, float] | None = None,
+    then: Callable[[list[ParameterInterval]], object] | None = None,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -393,6 +423,9 @@ def parameter_intervals(
             ``coarse_evaluate`` must then be safe to call from several threads). The result does not depend on it.
         reference: ``evaluate(params)`` when it is known already (the optimisation's iteration at the optimum
             computed it), else None: it is evaluated first.
+        then: a task queued after the coarse walks, called with the intervals the slices alone give (no
+            discretisation error measured) once every slice has ended: work that needs only those (e.g.
+            evaluating the materials they imply) runs while the coarse walks do. Its result is dropped.
     """
     if reference is None:
         # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
@@ -405,9 +438,11 @@ def parameter_intervals(
     # (a failure there is each walk's, and each says so).
     coarse_loss = None if coarse_evaluate is None else _shared_loss(coarse_evaluate, cancel)
 
-    # Every slice's two sides and its coarse walk are independent simulations: run them all, ``workers``
-    # at a time, then assemble each parameter's interval in order.
-    plans, tasks = [], []
+    # Every slice's two sides are independent simulations, and so are the two sides of its coarse walk, which
+    # need only know whether the slice left the interval short of the search box (else no error added to it
+    # could change it: the walk is not run). Run them all, ``workers`` at a time, the slices first (a coarse
+    # side starts after them, so what it waits for is running), then assemble each interval in order.
+    plans, sides, walks, ended = [], [], [], []  # ended: each slice side's result, when it has one
     for slot in range(params.log10_E.shape[0]):
         oids = [o for o in params.object_ids if params.slot(o) == slot]
         name = ", ".join(object_names.get(o, str(o)) for o in oids)
@@ -421,27 +456,38 @@ def parameter_intervals(
                 check_cancelled(cancel)
                 return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
 
-            def coarse_walk(slot=slot, what=what, steps=steps, box=box,
-                            best=best) -> DiscretisationError | EndoGSimError:
-                """The parameter's coarse optimum, or the failure that left none (the interval then stays
-                the statistical one). The optimum itself is ``params`` exactly (nu's round trip through
-                its raw value would change the last bits, and simulate it again)."""
+            down, up = Future(), Future()
+            ended += [down, up]
+
+            def coarse_walk(side: int, slot=slot, what=what, steps=steps, box=box, best=best, down=down,
+                            up=up) -> CoarseSide | EndoGSimError | None:
+                """One side of the parameter's coarse walk; the failure that left none (the interval then stays
+                the statistical one); None where the slice's interval is the whole search box. The optimum
+                itself is ``params`` exactly (nu's round trip through its raw value would change the last
+                bits, and simulate it again)."""
                 try:
-                    return discretisation_error(
-                        best, steps, box, lambda v: coarse_loss(params if v == best else _with_value(params, slot, what, v)),
-                        float(coarse_ratio))
+                    interval = slice_from_sides(best, box, threshold, stop, down.result(), up.result()).interval
+                except BaseException:  # the slice's own error is the one raised
+                    raise Cancelled() from None
+                if spans(interval, box):
+                    return None
+                try:
+                    return coarse_side(best, steps, box, lambda v: coarse_loss(
+                        params if v == best else _with_value(params, slot, what, v)), side)
                 except EndoGSimError as e:
                     return e
 
             plans.append((slot, oids, name, what, steps, box, best))
-            tasks += [partial(walk_side, best, steps, box, compare, stop, -1),
-                      partial(walk_side, best, steps, box, compare, stop, 1),
-                      coarse_walk if coarse_loss is not None else (lambda: None)]
-    results = run_independent(tasks, workers, cancel)
+            sides += [partial(_resolving, down, partial(walk_side, best, steps, box, compare, stop, -1)),
+                      partial(_resolving, up, partial(walk_side, best, steps, box, compare, stop, 1))]
+            walks += [partial(coarse_walk, -1), partial(coarse_walk, 1)] if coarse_loss is not None else []
 
-    out = []
-    for k, (slot, oids, name, what, steps, box, best) in enumerate(plans):
-        down, up, err = results[3 * k: 3 * k + 3]
+    def interval_of(plan: tuple, down: SliceSide, up: SliceSide, coarse: list) -> ParameterInterval:
+        """One parameter's interval from its slice's sides and its coarse walk's ([None, None]: none)."""
+        slot, oids, name, what, steps, box, best = plan
+        err = next((c for c in coarse if isinstance(c, EndoGSimError)), None)
+        if err is None and coarse[0] is not None:
+            err = discretisation_from_sides(best, float(coarse_ratio), *coarse)
         sl = slice_from_sides(best, box, threshold, stop, down, up)
         (lo, hi), records = sl.interval, sl.records
         g0 = None
@@ -460,22 +506,50 @@ def parameter_intervals(
             disc = asdict(err)
             disc["coarse_best"] = to_value(err.coarse_best)
             disc["profile"] = [[to_value(v), loss] for v, loss in err.profile]
-            if ok and lo <= box[0] + 1e-9 and hi >= box[1] - 1e-9:
+            if ok and spans([lo, hi], box):
                 # The video determines it at this discretisation, but the discretisation itself does
                 # not: an interval over the whole search box is "not identifiable" (issue 21).
                 ok = False
                 reason = (f"the loss rises significantly on both sides, but the discretisation's error "
                           f"(the optimum moves {err.shift:+.3g} on a grid {err.ratio:.2f}x coarser) spans "
                           "the search box")
-        out.append(ParameterInterval(
+        return ParameterInterval(
             object_id=oids[0], name=name, parameter=what, best=to_value(best),
             interval=[to_value(lo), to_value(hi)], search_box=[to_value(box[0]), to_value(box[1])],
             identifiable=ok, reason=reason,
             slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
             critical_z=threshold if math.isfinite(threshold) else None,
             significant_z=significance if math.isfinite(significance) else None,
-            statistical_interval=statistical, discretisation=disc))
-    return out
+            statistical_interval=statistical, discretisation=disc)
+
+    def assemble(slices: list[SliceSide], coarse: list[CoarseSide | EndoGSimError | None]) -> list[ParameterInterval]:
+        """Every parameter's interval from its slice's two sides and its coarse walk's (None: none)."""
+        return [interval_of(plan, slices[2 * k], slices[2 * k + 1], coarse[2 * k: 2 * k + 2] or [None, None])
+                for k, plan in enumerate(plans)]
+
+    tasks = sides + walks
+    if then is not None:
+        def after_slices() -> None:
+            try:
+                slices = [f.result() for f in ended]
+            except BaseException:  # a slice's own error is the one raised
+                raise Cancelled() from None
+            then(assemble(slices, []))
+
+        tasks.append(after_slices)
+    results = run_independent(tasks, workers, cancel)
+    return assemble(results[:len(sides)], results[len(sides):len(sides) + len(walks)])
+
+
+def _resolving(future: Future, task: Callable[[], R]) -> R:
+    """``task()``, its result or its error also given to ``future`` (for a task that waits on it)."""
+    try:
+        result = task()
+    except BaseException as e:
+        future.set_exception(e)
+        raise
+    future.set_result(result)
+    return result
 
 
 def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]],

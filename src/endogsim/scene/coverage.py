@@ -123,17 +123,19 @@ def tissue_coverage(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
     observed: dict[int, list[float]] | None = None if problem.object_masks is None else {oid: [] for oid in ids}
     object_ids = [o.id for o in problem.spec.objects]
     footprint_pixels: dict[int, int] = {}
+    feet: list[np.ndarray] = []
     for t in frames:
-        m, c = in_view(problem, rest_means, cov0, t)
-        ref = rasterize(m, opac, colors, view, covars=c, features=onehot, backend=backend)
+        if t == frames[0] or problem.viewmats is not None:  # a still camera sees the rest shape alike in every frame
+            m, c = in_view(problem, rest_means, cov0, t)
+            ref = rasterize(m, opac, colors, view, covars=c, features=onehot, backend=backend)
+            ref_alpha = ref.features.cpu().numpy()  # [H, W, n objects]: each object's share of the rest render
+            feet = [_erode(ref_alpha[..., k] > 0.5, margin) for k in range(len(ids))]
         m, c = in_view(problem, *frame_gaussians(problem, positions, F, cov0, t), t)
         sim = rasterize(m, opac, colors, view, covars=c, backend=backend)
         alpha = sim.alpha.cpu().numpy()
-        ref_alpha = ref.features.cpu().numpy()  # [H, W, n objects]: each object's share of the rest render
         seen = None if observed is None else observed_objects(problem.object_masks[t], object_ids, view.width,
                                                              view.height)
-        for k, oid in enumerate(ids):
-            foot = _erode(ref_alpha[..., k] > 0.5, margin)
+        for oid, foot in zip(ids, feet):
             if t == 0:
                 footprint_pixels[oid] = int(foot.sum())
             per_object[oid].append(float(alpha[foot].mean()) if foot.any() else 1.0)
