@@ -156,6 +156,17 @@ def test_two_fields_simulate_alike_when_the_simulator_gets_the_same_numbers():
     assert same_simulation(a, MaterialField([r.model_copy(update={"source": "identified"}) for r in b.records]))
 
 
+def _optimum_above_the_prior():
+    """(initial field, parameters at an optimum half a decade above the prior's E, that log10 E)."""
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E += 0.5
+    return init, params, float(params.log10_E.detach()[0])
+
+
 def test_a_flat_loss_is_not_identifiable_and_keeps_the_prior():
     """A per-frame loss that no parameter moves, through the code path identification uses."""
     init = _field()
@@ -276,13 +287,8 @@ def test_the_discretisation_error_widens_each_side_in_quadrature_within_the_sear
 def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_statistical_one():
     """Through the code path identification uses: the coarse loss's optimum 0.1 decades stiffer widens E's
     interval; whether the prior is kept is decided by the statistical interval alone."""
-    import torch
 
-    init = _field()
-    params = init.to_params(nu_bounds=(0.0, 0.49))
-    with torch.no_grad():
-        params.log10_E += 0.5  # the optimum: log10(3000) + 0.5 = 3.977
-    best = float(params.log10_E.detach()[0])
+    init, params, best = _optimum_above_the_prior()  # log10(3000) + 0.5 = 3.977
     rng = np.random.default_rng(0)
     noise = rng.normal(0.0, 1e-3, 12)
 
@@ -310,13 +316,8 @@ def test_parameter_intervals_report_both_intervals_and_keep_the_prior_by_the_sta
 
 
 def test_a_coarser_simulation_that_fails_leaves_the_statistical_interval_and_says_so():
-    import torch
 
-    init = _field()
-    params = init.to_params(nu_bounds=(0.0, 0.49))
-    with torch.no_grad():
-        params.log10_E += 0.5
-    best = float(params.log10_E.detach()[0])
+    init, params, best = _optimum_above_the_prior()
 
     def per_frame(trial) -> dict[int, float]:
         return {t: 0.2 + (1.0 + 0.01 * t) * (float(trial.log10_E[0]) - best) ** 2 for t in range(8)}
@@ -357,13 +358,8 @@ def test_trials_run_several_at_a_time_give_the_same_intervals():
     import threading
     from dataclasses import asdict
 
-    import torch
 
-    init = _field()
-    params = init.to_params(nu_bounds=(0.0, 0.49))
-    with torch.no_grad():
-        params.log10_E += 0.5
-    best = float(params.log10_E.detach()[0])
+    init, params, best = _optimum_above_the_prior()
     noise = np.random.default_rng(1).normal(0.0, 1e-3, 12)
     threads, coarse_at_best, lock = set(), [], threading.Lock()
 
@@ -399,13 +395,8 @@ def test_no_discretisation_error_is_measured_where_the_interval_is_the_whole_sea
     its interval, nu's does not run (its interval, the search box, cannot widen), one or three at a time."""
     from dataclasses import asdict
 
-    import torch
 
-    init = _field()
-    params = init.to_params(nu_bounds=(0.0, 0.49))
-    with torch.no_grad():
-        params.log10_E += 0.5
-    best = float(params.log10_E.detach()[0])
+    init, params, best = _optimum_above_the_prior()
     noise = np.random.default_rng(2).normal(0.0, 1e-3, 12)
     coarse_trials = []
 
@@ -434,13 +425,8 @@ def test_no_discretisation_error_is_measured_where_the_interval_is_the_whole_sea
 def test_the_slices_intervals_are_handed_on_while_the_coarse_walks_run():
     """``then`` gets the intervals the slices alone give (no discretisation error) once, as a task of the same
     pool: E's statistical interval and verdict are the final ones; the returned intervals are unchanged."""
-    import torch
 
-    init = _field()
-    params = init.to_params(nu_bounds=(0.0, 0.49))
-    with torch.no_grad():
-        params.log10_E += 0.5
-    best = float(params.log10_E.detach()[0])
+    init, params, best = _optimum_above_the_prior()
     noise = np.random.default_rng(3).normal(0.0, 1e-3, 12)
 
     def per_frame(trial, centre: float) -> dict[int, float]:
