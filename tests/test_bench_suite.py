@@ -11,6 +11,7 @@ import pytest
 from endogsim.bench.suite import (
     RUNS,
     interval_summary,
+    object_results,
     run_suite,
     suite_objects,
     suite_tables,
@@ -76,6 +77,22 @@ def test_tables_average_over_scenes():
     assert t["table3"]["rows"][0][4] == pytest.approx(12.0) and "not run" in t["ablation"]["note"]
     # no intervals measured (optimisation off): nothing is claimed about coverage or identifiability
     assert math.isnan(t["table2"]["rows"][0][4]) and t["table2"]["rows"][0][6] == "-, -"
+
+
+def test_the_statistical_interval_is_the_interval_where_no_discretisation_error_widened_it():
+    """A parameter whose interval is the search box has no coarse walk (no `statistical_interval`): its
+    statistical interval is the interval itself, counted in the statistical coverage; one widened by the
+    discretisation error keeps its own."""
+    metrics = {"materials": {"liver": {"E": 1e3, "nu": 0.45, "rigid": False, "source": "identified"}},
+               "intervals": {"liver": {"E": [500.0, 4000.0], "nu": [0.0, 0.49]}},
+               "identifiable": {"liver": {"E": {"identifiable": True, "statistical_interval": [800.0, 1300.0]},
+                                          "nu": {"identifiable": False, "statistical_interval": None}}}}
+    o = object_results(metrics, {"liver": (1.5e3, 0.4)})["liver"]
+    assert o["E_interval_statistical"] == [800.0, 1300.0] and o["nu_interval_statistical"] == [0.0, 0.49]
+    s = interval_summary([o])
+    assert s["coverage_statistical_E"] == 0.0 and s["coverage_statistical_nu"] == 1.0
+    no_intervals = object_results({"materials": metrics["materials"]}, {"liver": (1.5e3, 0.4)})["liver"]
+    assert no_intervals["E_interval_statistical"] is None and no_intervals["nu_interval"] is None
 
 
 def test_clear_errors(tmp_path, monkeypatch):

@@ -112,9 +112,9 @@ def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict
     Returns:
         {name: {"E", "nu" (identified; Pa), "source", "E_true", "nu_true", "e_rel_error" (|E/E_true - 1|),
         "E_interval" ([lo, hi] Pa), "nu_interval", "E_interval_statistical", "nu_interval_statistical" (the
-        frame-to-frame noise alone, before the discretisation error widened them), "E_identifiable",
-        "nu_identifiable"}}; None where the run did not measure it (no truth, intervals off or no iteration
-        run, no discretisation error measured).
+        frame-to-frame noise alone, before the discretisation error widened them; the interval itself where
+        none was measured), "E_identifiable", "nu_identifiable"}}; None where the run did not measure it (no
+        truth, intervals off or no iteration run).
     """
     out = {}
     for name, v in metrics["materials"].items():
@@ -123,11 +123,14 @@ def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict
         iv = metrics.get("intervals", {}).get(name, {})
         ok = metrics.get("identifiable", {}).get(name, {})
         E_true, nu_true = truth.get(name, (None, None))
+
+        def statistical(what: str) -> list[float] | None:  # no discretisation error measured: the same interval
+            return (ok[what].get("statistical_interval") or iv.get(what)) if what in ok else None
+
         out[name] = {"E": v["E"], "nu": v["nu"], "source": v.get("source"), "E_true": E_true, "nu_true": nu_true,
                      "e_rel_error": metrics.get("re_objects", {}).get(name, {}).get("e_rel_error"),
                      "E_interval": iv.get("E"), "nu_interval": iv.get("nu"),
-                     "E_interval_statistical": ok.get("E", {}).get("statistical_interval"),
-                     "nu_interval_statistical": ok.get("nu", {}).get("statistical_interval"),
+                     "E_interval_statistical": statistical("E"), "nu_interval_statistical": statistical("nu"),
                      "E_identifiable": ok.get("E", {}).get("identifiable"),
                      "nu_identifiable": ok.get("nu", {}).get("identifiable")}
     return out

@@ -42,7 +42,7 @@ the statistical interval is kept beside it, and it alone decides whether the vid
 from its prior. An interval that the discretisation's error stretches over the whole search box makes the
 parameter not identifiable. A parameter whose statistical interval is the whole search box already has its
 discretisation error not measured: nothing added to it could change the interval or the verdict (on the
-real pulling clip that saved the two coarse walks, 130 s of simulation).
+real pulling clip nu's coarse walk: four simulations).
 """
 
 from __future__ import annotations
