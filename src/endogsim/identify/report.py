@@ -181,8 +181,9 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)
-    obs_flow = cached_observed_flow(run)
     ev = result.evaluation
+    # The observed flow (pulling: 41 MB) is read only for an evaluation still to make.
+    obs_flow = cached_observed_flow(run) if evaluate_init or not isinstance(ev, Evaluation) else None
     if not isinstance(ev, Evaluation):
         ev = evaluate_field(problem, result.field, obs_flow)
     re = material_errors(problem, result.field)
