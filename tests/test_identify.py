@@ -117,7 +117,7 @@ def test_loss_is_least_near_the_true_material(problem):
 
     cfg = IdentifyConfig()
     obs, cam = prepare_observations(problem, cfg, None)
-    loss = lambda fld: evaluate_loss(problem, fld, None, obs, cam, cfg, grad=False).parts["total"]  # noqa: E731
+    loss = lambda fld: evaluate_loss(problem, fld, None, obs, cam, cfg, grad=False)[0].parts["total"]  # noqa: E731
     at_truth = loss(field_from_truth(problem))
     for factor in (0.25, 0.5, 2.0, 4.0):
         assert at_truth < loss(field_from_truth(problem, factor)), factor
@@ -126,17 +126,42 @@ def test_loss_is_least_near_the_true_material(problem):
 def test_the_optimums_loss_from_its_iteration_is_the_one_the_intervals_compare_with(problem):
     """The intervals compare every trial with the optimum's per-frame loss, taken from the iteration that
     evaluated it (differentiable rollout, renders on the autograd path): it must be the untaped
-    simulation's to the last bit, or the trials' noise would be measured against another simulation."""
+    simulation's to the last bit, or the trials' noise would be measured against another simulation. The
+    iteration's simulation, which scores the identified field when it has the same materials, must be the
+    forward-only simulator's to the last bit too."""
     from endogsim.identify.optimize import evaluate_loss, prepare_observations
 
     cfg = fast_config()
     obs, cam = prepare_observations(problem, cfg, None)
     fld = field_from_truth(problem, 2.0)
     params = fld.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
-    taped = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=True)
+    taped, taped_sim = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=True)
     taped.total.backward()
-    plain = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=False)
+    plain, _ = evaluate_loss(problem, fld, params, obs, cam, cfg, grad=False)
     assert len(plain.per_frame) > 2 and taped.per_frame == plain.per_frame
+    forward = problem.simulator().simulate(fld.simulator_materials())
+    assert torch.equal(taped_sim.positions.detach(), forward.positions)
+    assert torch.equal(taped_sim.F.detach(), forward.F)
+    assert taped_sim.settling_left == forward.settling_left and taped_sim.substeps == forward.substeps
+    assert all(torch.equal(a, b) for a, b in zip(taped_sim.colliders, forward.colliders))
+
+
+def test_the_iterations_simulations_score_a_field_as_a_new_simulation_would(run3, problem):
+    """The identified field (here the best iterate) is scored from the iteration's own simulation of the
+    same materials: the same scores to the last digit as simulating it again. The initial field is found
+    only where the optimiser's parameters give its materials to the last bit (nu's round trip through its
+    raw value may change them; then it is simulated), and a field no iteration simulated is simulated."""
+    from endogsim.identify.report import evaluate_field
+
+    res, _ = run3
+    assert res.simulations.find(res.field.simulator_materials()) is not None
+    for fld in (res.field, res.init_field):
+        kept, fresh = evaluate_field(problem, fld, known=res.simulations), evaluate_field(problem, fld)
+        assert (kept.epe, kept.psnr, kept.ssim, kept.settling_left) == (fresh.epe, fresh.psnr, fresh.ssim,
+                                                                         fresh.settling_left)
+        assert np.array_equal(kept.rgb, fresh.rgb) and kept.coverage.to_json() == fresh.coverage.to_json()
+    other = field_from_truth(problem, 3.0)
+    assert res.simulations.find(other.simulator_materials()) is None
 
 
 def test_loss_decreases_and_E_moves_towards_the_truth(run3):
@@ -158,8 +183,8 @@ def test_gradient_matches_finite_differences(run3, problem):
     cfg = fast_config()
     obs, cam = prepare_observations(problem, cfg, None)
     h = 0.02  # decades
-    L = [evaluate_loss(problem, field_from_truth(problem, 2.0 * 10 ** s), None, obs, cam, cfg, grad=False).parts["total"]
-         for s in (h, -h)]
+    L = [evaluate_loss(problem, field_from_truth(problem, 2.0 * 10 ** s), None, obs, cam, cfg,
+                       grad=False)[0].parts["total"] for s in (h, -h)]
     fd = (L[0] - L[1]) / (2 * h)
     g = res.history[0]["grad_log10_E"][0]
     # float32 renders at half scale make the loss slightly rough at this step: 30% (3% at render_scale 1)

@@ -220,7 +220,7 @@ def test_recomputing_the_next_segment_on_a_second_thread_gives_the_same_gradient
     parts, scen, cfg, w, v0, _ = setup
     grads = {}
     for pipelined in (False, True):
-        monkeypatch.setattr(rollout._SegmentPipeline, "_second_set_fits", staticmethod(lambda *a: pipelined))
+        monkeypatch.setattr(rollout, "independent_runs", lambda *a: 2 if pipelined else 1)
         x0 = parts.x.clone().requires_grad_(True)
         params = _params()
         pos, F = mpm_rollout(parts, _materials(setup, *params), scen, cfg, T, grad_mode=mode, x0=x0, v0=v0)

@@ -376,18 +376,34 @@ def test_trials_run_several_at_a_time_give_the_same_intervals():
             coarse_at_best.append(1)  # the optimum, whichever walk asks (nu's round trip changes the last bits)
         return per_frame(trial, best + 0.1)
 
+    told, fine_trials = [], []
+
     def intervals(workers: int):
-        return parameter_intervals(params, {1: "liver"}, lambda trial: per_frame(trial, best),
-                                   lambda trial: ([1.7], [6.0]), True, coarse_evaluate=coarse, coarse_ratio=1.4,
-                                   workers=workers)
+        told.clear()
+        fine_trials.clear()
+
+        def fine(trial):
+            with lock:
+                fine_trials.append(1)
+            return per_frame(trial, best)
+
+        return parameter_intervals(params, {1: "liver"}, fine, lambda trial: ([1.7], [6.0]), True,
+                                   coarse_evaluate=coarse, coarse_ratio=1.4, workers=workers, on_trial=told.append)
 
     one = intervals(1)
     assert len(threads) == 1 and len(coarse_at_best) == 1
+    # progress: every trial told once (the coarse optimum by each walk that starts from it), values in Pa; the
+    # optimum's own evaluation (the reference every trial is compared with) is not a trial
+    assert sum(t["grid"] == "fine" for t in told) == len(fine_trials) - 1 >= 4
+    assert {(t["object"], t["parameter"], t["grid"]) for t in told} >= {("liver", "E", "fine"), ("liver", "nu", "fine"),
+                                                                          ("liver", "E", "coarse")}
+    assert all(10 ** 1.7 <= t["value"] <= 10 ** 6.0 for t in told if t["parameter"] == "E")
     threads.clear()
     coarse_at_best.clear()
     four = intervals(4)
     assert [asdict(iv) for iv in four] == [asdict(iv) for iv in one]
     assert len(threads) > 1 and len(coarse_at_best) == 1
+    assert sum(t["grid"] == "fine" for t in told) == len(fine_trials) - 1
 
 
 def test_no_discretisation_error_is_measured_where_the_interval_is_the_whole_search_box():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Optional
 
@@ -62,14 +63,34 @@ def register(app: typer.Typer) -> None:
                              coarse_factor=coarse_factor or None)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
+            trials: list = []  # the interval trials' task, added when the iterations end (their count is open)
+            lock = threading.Lock()  # trials end on worker threads
+
+            def start_trials() -> None:
+                with lock:
+                    if not trials:
+                        bar.update(task, completed=max(iters, 1))
+                        trials.append(bar.add_task("intervals", total=None))
 
             def cb(k: int, total: int, rec: dict) -> None:
                 E = ", ".join(f"{v:.4g}" for v in rec["E"].values())
                 nu = ", ".join(f"{v:.3f}" for v in rec["nu"].values())
                 bar.update(task, completed=k, description=f"identify (loss {rec['loss']:.4g}; E {E} Pa; nu {nu})")
+                if rec.get("converged") or k >= total:
+                    start_trials()
 
-            m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video)
+            def trial_done(t: dict) -> None:
+                start_trials()
+                unit = " Pa" if t["parameter"] == "E" else ""
+                bar.update(trials[0], advance=1, description=f"intervals ({t['object']} {t['parameter']} "
+                                                             f"{t['value']:.4g}{unit}, {t['grid']} grid)")
+
+            m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video,
+                             on_trial=trial_done)
             bar.update(task, completed=max(iters, 1))
+            for t in bar.tasks:
+                if trials and t.id == trials[0]:  # every trial ended: the count is known
+                    bar.update(t.id, total=t.completed, description="intervals")
         # The source says whether the video moved the value (identified, a one-sided estimate) or not (prior);
         # the interval what the video and the discretisation leave open around it.
         ivs = m.get("intervals", {})

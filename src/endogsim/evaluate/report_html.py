@@ -171,6 +171,17 @@ def validation_rows(v: dict) -> list[list[str]]:
     return [[name, fixed(sc["epe"], 6), fixed(sc["psnr_masked"], 4), said] for name, sc, said in rows]
 
 
+def settling_text(settle: dict) -> str:
+    """What the settling before frame 0 left, from metrics.json's ``settling`` record
+    (:func:`endogsim.identify.report.settling_record`), and whether that is settled."""
+    verdict = "settled" if settle["settled"] else (
+        "NOT settled: the rest moves in the clip (a real video starts at equilibrium; a fit reads that motion "
+        "as the tissue's response)")
+    return (f"{settle['frames']} frames under gravity before frame 0; in the last, a particle still moved "
+            f"{1e3 * settle['last_frame_motion_m']:.4f} mm ({100 * settle['cells']:.2f}% of a grid cell; tolerance "
+            f"{100 * settle['tolerance_cells']:.0f}%): {verdict}")
+
+
 def discretisation_text(parameter: str, disc: dict) -> str:
     """'+-0.63 decades (the optimum on a grid 1.42x coarser: 6474 Pa, -0.0888 decades)' from the dict of a
     :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu")."""
@@ -372,12 +383,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                      "drop means the simulated tissue tore, and the run fails)</p>")
     settle = metrics.get("settling")
     if isinstance(settle, dict) and settle.get("frames"):
-        verdict = "settled" if settle["settled"] else (
-            "NOT settled: the rest moves in the clip (a real video starts at equilibrium; a fit reads that motion "
-            "as the tissue's response)")
-        parts.append(f"<h2>Settling</h2><p>{settle['frames']} frames under gravity before frame 0; in the last, a "
-                     f"particle still moved {1e3 * settle['last_frame_motion_m']:.4f} mm ({100 * settle['cells']:.2f}% "
-                     f"of a grid cell; tolerance {100 * settle['tolerance_cells']:.0f}%): {_e(verdict)}</p>")
+        parts.append(f"<h2>Settling</h2><p>{_e(settling_text(settle))}</p>")
 
     try:
         parts += _instruments_section(scene_folder, scene_doc)

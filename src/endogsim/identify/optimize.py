@@ -42,9 +42,9 @@ from endogsim.identify.loss import (
 from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord
-from endogsim.physics import max_stable_E
+from endogsim.physics import SimResult, max_stable_E
 from endogsim.scene.folder import SimScene, coarsened
-from endogsim.scene.forward import in_view, render_sequence, simulate_materials
+from endogsim.scene.forward import Simulations, in_view, render_sequence, same_materials, simulate_materials
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
@@ -104,6 +104,8 @@ class IdentifyResult:
             initial value in ``field``.
         evaluation: ``evaluate(field)`` when :func:`identify` was given ``evaluate`` and computed it while the
             intervals' last trials ran, else None.
+        simulations: the iterations' simulations of the initial and the best iterate's materials (this
+            process's iterations only): a field with the same materials is evaluated without simulating it again.
     """
 
     field: MaterialField
@@ -117,6 +119,7 @@ class IdentifyResult:
     notes: list[str] = field(default_factory=list)
     intervals: list[ParameterInterval] = field(default_factory=list)
     evaluation: object | None = None
+    simulations: Simulations = field(default_factory=Simulations)
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
@@ -231,13 +234,14 @@ def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Pat
 
 
 def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams | None, obs: Observations,
-                  camera, config: IdentifyConfig, grad: bool) -> LossValue:
-    """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects)."""
+                  camera, config: IdentifyConfig, grad: bool) -> tuple[LossValue, SimResult]:
+    """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects); also
+    the simulation (its positions and F carry the gradients when ``grad``)."""
     with torch.set_grad_enabled(grad):
-        pos, F = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
+        sim = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
         frames = range(0, problem.num_frames, config.stride(problem.num_frames))
-        rendered = render_sequence(problem, pos, F, camera, frames=frames)
-        return identification_loss(rendered, obs, config.term_weights())
+        rendered = render_sequence(problem, sim.positions, sim.F, camera, frames=frames)
+        return identification_loss(rendered, obs, config.term_weights()), sim
 
 
 def stationary(leaves: list[torch.Tensor], loss: float, tol: float) -> bool:
@@ -257,7 +261,8 @@ def identify(
     progress: Callable[[int, int, dict], None] | None = None,
     stop_after: int | None = None,
     strict: bool = False,
-    evaluate: Callable[[MaterialField], object] | None = None,
+    evaluate: Callable[[MaterialField, Simulations], object] | None = None,
+    on_trial: Callable[[dict], None] | None = None,
 ) -> IdentifyResult:
     """Identify E and nu of the deformable objects of ``problem`` from its observed video.
 
@@ -271,10 +276,13 @@ def identify(
         stop_after: stop (as if interrupted) after this many iterations in this call; for tests.
         strict: refuse initial materials beyond the stability limit (explicit user request) instead of
             starting from the nearest stable value (an initialiser's guess).
-        evaluate: field -> its evaluation (e.g. :func:`endogsim.identify.report.evaluate_field`). When the
-            intervals' trials run side by side, the field their slices imply is evaluated while the coarse
-            walks run, and kept as ``IdentifyResult.evaluation`` if it is the identified field (the coarse
-            walks change it only where their error makes a parameter not identifiable).
+        evaluate: (field, :attr:`IdentifyResult.simulations`) -> the field's evaluation (e.g.
+            :func:`endogsim.identify.report.evaluate_field`). When the intervals' trials run side by side, the
+            field their slices imply is evaluated while the coarse walks run, and kept as
+            ``IdentifyResult.evaluation`` if it is the identified field (the coarse walks change it only where
+            their error makes a parameter not identifiable).
+        on_trial: callback(trial) after every simulation of the intervals (see
+            :func:`~endogsim.identify.uncertainty.parameter_intervals`), from the thread that ran it.
     Returns:
         :class:`IdentifyResult` with the best iterate's materials.
     Raises:
@@ -332,7 +340,7 @@ def identify(
     stopped = "iters" if cfg.iters > 0 else "no_iterations"
     if history and history[-1].get("converged"):
         stopped, start = "converged", max(start, cfg.iters)
-    done_here = 0
+    done_here, simulations = 0, Simulations()
     for k in range(start, cfg.iters):
         if stop_after is not None and done_here >= stop_after:
             stopped = "interrupted"
@@ -345,7 +353,9 @@ def identify(
         for gr in opt.param_groups:
             gr["lr"] = lr * gr["lr_scale"]
         opt.zero_grad(set_to_none=True)
-        value = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+        value, sim = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+        if k == 0:
+            simulations.keep("initial", init_field.simulator_materials(params), sim)
         value.total.backward()
         parts = value.parts
         for leaf, what in zip(leaves, ("log10 E", "raw nu")):
@@ -367,6 +377,7 @@ def identify(
             improved = best is None or parts["total"] < best["loss"] * (1 - cfg.tol)
             best = {"loss": parts["total"], "iteration": k, "log10_E": params.log10_E.detach().clone(),
                     "nu_raw": params.nu_raw.detach().clone(), "per_frame": dict(value.per_frame)}
+            simulations.keep("best", init_field.simulator_materials(params), sim)
             stale = 0 if improved else stale + 1
         else:
             stale += 1
@@ -413,16 +424,16 @@ def identify(
                                  f"its grid could not be built ({e})")
                 else:
                     coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
-                        coarse, init_field, trial, obs, cam, cfg, grad=False).per_frame
+                        coarse, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame
             workers = problem.independent_simulations()
 
             def evaluate_implied(slices: list[ParameterInterval]) -> None:
                 fld = identified_field(init_field, final, slices)
-                evaluated.update(field=fld, evaluation=evaluate(fld))
+                evaluated.update(field=fld, evaluation=evaluate(fld, simulations))
 
             intervals = parameter_intervals(
                 final, {o: problem.labels[o].name for o in final.object_ids},
-                lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False).per_frame,
+                lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame,
                 lambda trial: ([math.log10(cfg.E_min)] * trial.log10_E.shape[0],
                                stable_log10_E_max(problem, trial.nu(), _slot_density(problem, init_field, trial), cfg).tolist()),
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
@@ -433,25 +444,20 @@ def identify(
                 # built: the trials may start side by side); a run resumed with nothing left to iterate, or
                 # from an older checkpoint, evaluates it first, alone.
                 reference=best.get("per_frame") if done_here else None,
-                then=evaluate_implied if evaluate is not None and workers > 1 else None)
+                then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial)
         ident = identified_field(init_field, final, intervals)
     evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
                           best_loss=math.nan if best is None else float(best["loss"]),
                           iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
-                          evaluation=evaluation)
+                          evaluation=evaluation, simulations=simulations)
 
 
 def same_simulation(a: MaterialField, b: MaterialField) -> bool:
     """Whether two fields give the simulator the same materials, to the last bit (every object's E, nu,
     density, constitutive model and yield stress): their simulations are then the same."""
-    ma, mb = a.simulator_materials(), b.simulator_materials()
-
-    def same(x: torch.Tensor, y: torch.Tensor) -> bool:  # NaN (an id without a record) equals NaN
-        return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
-
-    return all(same(getattr(ma, n), getattr(mb, n)) for n in ("E", "nu", "density", "model", "yield_stress"))
+    return same_materials(a.simulator_materials(), b.simulator_materials())
 
 
 #: The source of a material the video could not determine: its initial value is kept.

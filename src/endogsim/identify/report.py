@@ -30,7 +30,7 @@ from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
-from endogsim.evaluate.report_html import discretisation_text
+from endogsim.evaluate.report_html import discretisation_text, settling_text
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import IdentifyResult
 from endogsim.identify.uncertainty import ParameterInterval
@@ -39,7 +39,7 @@ from endogsim.materials.field import MaterialField
 from endogsim.physics import SETTLING_TOLERANCE
 from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
-from endogsim.scene.forward import render_sequence
+from endogsim.scene.forward import Simulations, render_sequence
 
 __all__ = ["Evaluation", "evaluate_field", "cached_observed_flow", "material_errors", "settling_record",
            "write_outputs"]
@@ -75,10 +75,15 @@ class Evaluation:
 
 
 @deterministic()  # the same numbers wherever it runs (identification evaluates it on a worker thread)
-def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndarray | None = None) -> Evaluation:
-    """Simulate ``fld`` (no gradients; substeps from the CFL rule), render, and score it."""
+def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndarray | None = None,
+                   known: Simulations | None = None) -> Evaluation:
+    """Simulate ``fld`` (no gradients; substeps from the CFL rule), render, and score it. A simulation of the
+    same materials in ``known`` (e.g. :attr:`IdentifyResult.simulations`) is used instead of simulating again."""
     with torch.no_grad():
-        res = problem.simulator().simulate(fld.simulator_materials())
+        mats = fld.simulator_materials()
+        res = None if known is None else known.find(mats)
+        if res is None:
+            res = problem.simulator().simulate(mats)
         r = render_sequence(problem, res.positions, res.F, problem.camera)
         cov = tissue_coverage(problem, res.positions, res.F, problem.camera.scaled(0.5))
     rgb = r.rgb.clamp(0, 1).numpy()
@@ -185,7 +190,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     # The observed flow (pulling: 41 MB) is read only for an evaluation still to make.
     obs_flow = cached_observed_flow(run) if evaluate_init or not isinstance(ev, Evaluation) else None
     if not isinstance(ev, Evaluation):
-        ev = evaluate_field(problem, result.field, obs_flow)
+        ev = evaluate_field(problem, result.field, obs_flow, result.simulations)
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {
@@ -209,7 +214,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         metrics.update({k: v for k, v in re.items() if k != "objects"})
         metrics["re_objects"] = re["objects"]
     if evaluate_init:
-        ev0 = evaluate_field(problem, result.init_field, obs_flow)
+        ev0 = evaluate_field(problem, result.init_field, obs_flow, result.simulations)
         re0 = material_errors(problem, result.init_field)
         metrics["init_metrics"] = {"epe": ev0.epe, "psnr": ev0.psnr, "ssim": ev0.ssim,
                                    **({"re_mean": re0["re_mean"]} if re0 else {})}
@@ -250,10 +255,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
                  + (f" ({problem.spec.object(oid).name}, frame {frame})" if oid is not None and drop > 0 else ""))
     settle = metrics["settling"]
     if settle["frames"]:
-        lines.append(f"settling: {settle['frames']} frames before frame 0; a particle still moved "
-                     f"{settle['last_frame_motion_m'] * 1e3:.4f} mm ({settle['cells']:.2%} of a grid cell) in the "
-                     "last" + ("" if settle["settled"] else ": NOT settled (the rest moves in the clip: a real "
-                               "video starts at equilibrium, a fit reads that motion as the tissue's response)"))
+        lines.append(f"settling: {settling_text(settle)}")
     lines += [f"note: {n}" for n in result.notes]
     write_text_atomic(run / "summary.txt", "\n".join(lines) + "\n")
     check_coverage(ev.coverage, problem)  # after writing: the run folder shows the tear

@@ -62,6 +62,7 @@ def run_identify(
     video: bool = True,
     evaluate_init: bool = False,
     problem: SimScene | None = None,
+    on_trial: Callable[[dict], None] | None = None,
 ) -> dict:
     """Identify the materials of a scene folder and write the run folder ``out``; returns metrics.json's dict.
 
@@ -71,7 +72,9 @@ def run_identify(
             False; a corrupt checkpoint or flow cache is refused before any work).
         init: initialiser or material JSON file (see :func:`initial_field`).
         config: identification options.
-        progress: callback(iteration, iters, info).
+        progress: callback(iteration, iters, info) after every iteration.
+        on_trial: callback(trial) after every simulation of the intervals that follow the iterations (see
+            :func:`~endogsim.identify.uncertainty.parameter_intervals`; called from worker threads).
         video: write comparison.mp4.
         evaluate_init: also score the initial materials (metrics["init_metrics"]).
         problem: an already loaded problem for ``scene`` (saves the loading).
@@ -85,7 +88,8 @@ def run_identify(
         check_field_objects(pb, fld, init)
         # The identified field is evaluated while the intervals' last trials run, where they run side by side.
         result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict,
-                          evaluate=lambda f: evaluate_field(pb, f, cached_observed_flow(out)))
+                          evaluate=lambda f, known: evaluate_field(pb, f, cached_observed_flow(out), known),
+                          on_trial=on_trial)
         return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)
 
 

@@ -405,6 +405,7 @@ def parameter_intervals(
     workers: int = 1,
     reference: dict[int, float] | None = None,
     then: Callable[[list[ParameterInterval]], object] | None = None,
+    on_trial: Callable[[dict], None] | None = None,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -426,6 +427,8 @@ def parameter_intervals(
         then: a task queued after the coarse walks, called with the intervals the slices alone give (no
             discretisation error measured) once every slice has ended: work that needs only those (e.g.
             evaluating the materials they imply) runs while the coarse walks do. Its result is dropped.
+        on_trial: called after every trial simulation, from the thread that ran it (progress display), with
+            {"object": name, "parameter": "E" | "nu", "value": Pa or -, "grid": "fine" | "coarse"}.
     """
     if reference is None:
         # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
@@ -437,6 +440,10 @@ def parameter_intervals(
     # Every coarse walk starts at the optimum: the first to get there simulates it, the other waits for it
     # (a failure there is each walk's, and each says so).
     coarse_loss = None if coarse_evaluate is None else _shared_loss(coarse_evaluate, cancel)
+
+    def tell(name: str, what: str, v: float, grid: str) -> None:
+        if on_trial is not None:
+            on_trial({"object": name, "parameter": what, "value": 10.0 ** v if what == "E" else v, "grid": grid})
 
     # Every slice's two sides are independent simulations, and so are the two sides of its coarse walk, which
     # need only know whether the slice left the interval short of the search box (else no error added to it
@@ -452,19 +459,26 @@ def parameter_intervals(
             nlo, nhi = params.nu_bounds
             specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
         for what, steps, box, best in specs:
-            def compare(v: float, slot=slot, what=what) -> tuple[float, float, float]:
+            def compare(v: float, slot=slot, what=what, name=name) -> tuple[float, float, float]:
                 check_cancelled(cancel)
-                return paired_z(evaluate(_with_value(params, slot, what, v)), reference)
+                per_frame = evaluate(_with_value(params, slot, what, v))
+                tell(name, what, v, "fine")
+                return paired_z(per_frame, reference)
+
+            def coarse_trial(v: float, slot=slot, what=what, best=best, name=name) -> float:
+                # The optimum itself is ``params`` exactly (nu's round trip through its raw value would change
+                # the last bits, and simulate it again).
+                loss = coarse_loss(params if v == best else _with_value(params, slot, what, v))
+                tell(name, what, v, "coarse")
+                return loss
 
             down, up = Future(), Future()
             ended += [down, up]
 
-            def coarse_walk(side: int, slot=slot, what=what, steps=steps, box=box, best=best, down=down,
-                            up=up) -> CoarseSide | EndoGSimError | None:
+            def coarse_walk(side: int, steps=steps, box=box, best=best, down=down, up=up,
+                            trial=coarse_trial) -> CoarseSide | EndoGSimError | None:
                 """One side of the parameter's coarse walk; the failure that left none (the interval then stays
-                the statistical one); None where the slice's interval is the whole search box. The optimum
-                itself is ``params`` exactly (nu's round trip through its raw value would change the last
-                bits, and simulate it again)."""
+                the statistical one); None where the slice's interval is the whole search box."""
                 try:
                     interval = slice_from_sides(best, box, threshold, stop, down.result(), up.result()).interval
                 except BaseException:  # the slice's own error is the one raised
@@ -472,8 +486,7 @@ def parameter_intervals(
                 if spans(interval, box):
                     return None
                 try:
-                    return coarse_side(best, steps, box, lambda v: coarse_loss(
-                        params if v == best else _with_value(params, slot, what, v)), side)
+                    return coarse_side(best, steps, box, trial, side)
                 except EndoGSimError as e:
                     return e
 

@@ -42,6 +42,7 @@ from endogsim.physics.materials import ObjectMaterials
 from endogsim.physics.modes import GRAD_MODES, GradMode
 from endogsim.physics.particles import Particles
 from endogsim.physics.stability import check_materials, plan_substeps
+from endogsim.warp_runtime import independent_runs
 
 __all__ = ["SimResult", "Simulator", "simulate", "mpm_rollout"]
 
@@ -148,18 +149,12 @@ class _SegmentPipeline:
     def __init__(self, engine: MPMEngine, mats, step: Timestep, n_sub: int, segment, ahead: list[int]):
         self.engine, self.mats, self.step, self.segment = engine, mats, step, segment
         self.ahead = list(ahead)
-        sets = 2 if self._second_set_fits(engine, n_sub) and len(self.ahead) > 1 else 1
+        # Two buffer sets work side by side under the rule of any two simulations at a time (a CPU, two torch
+        # threads, half the available memory holds both).
+        sets = 2 if len(self.ahead) > 1 and independent_runs(engine.device, engine.segment_bytes(n_sub)) >= 2 else 1
         self.free = engine.segment_buffers(n_sub, sets)
         self.pending: dict[int, tuple[Future, object]] = {}
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="endogsim-segment") if sets > 1 else None
-
-    @staticmethod
-    def _second_set_fits(engine: MPMEngine, n_sub: int) -> bool:
-        """Two buffer sets may work side by side: the rule of any two simulations at a time (a CPU, two torch
-        threads, half the available memory holds both)."""
-        from endogsim.warp_runtime import independent_runs
-
-        return independent_runs(engine.device, engine.segment_bytes(n_sub)) >= 2
 
     def _record(self, f: int, seg):
         start, first = self.segment(f)
@@ -306,9 +301,10 @@ class Simulator:
         box = self.scenario.box
         return (materials.model.detach().cpu(), box.modulus_to_sim(materials.yield_stress.detach().double()))
 
-    def rollout(self, materials: ObjectMaterials, grad_mode: GradMode = "frame", x0: torch.Tensor | None = None,
-                v0: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Differentiable rollout (see :func:`mpm_rollout`): positions [T, P, 3] (m) and F [T, P, 3, 3]."""
+    def run(self, materials: ObjectMaterials, grad_mode: GradMode = "frame", x0: torch.Tensor | None = None,
+            v0: torch.Tensor | None = None) -> SimResult:
+        """Differentiable rollout (see :func:`mpm_rollout`) as a :class:`SimResult` whose positions and F carry
+        the gradients: the same numbers as :meth:`simulate` of the same materials."""
         if grad_mode not in GRAD_MODES:
             raise SimulationError(f"grad_mode {grad_mode!r} is not one of {GRAD_MODES}")
         p = self.particles
@@ -323,7 +319,13 @@ class Simulator:
         xs, Fs = _MPMRolloutFn.apply(x0_sim, v0_sim, self.engine, step, grad_mode, self._static(materials), *diff)
         positions = box.to_world(xs.to(torch.float64)).to(x0.dtype)
         # Index 0 is exactly the input (no float32 round trip), so its gradient is the identity.
-        return self._clip(torch.cat([x0[None], positions[1:]], 0), Fs)
+        return self._result(torch.cat([x0[None], positions[1:]], 0), Fs, step)
+
+    def rollout(self, materials: ObjectMaterials, grad_mode: GradMode = "frame", x0: torch.Tensor | None = None,
+                v0: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable rollout (see :func:`mpm_rollout`): positions [T, P, 3] (m) and F [T, P, 3, 3]."""
+        res = self.run(materials, grad_mode, x0, v0)
+        return res.positions, res.F
 
     def simulate(self, materials: ObjectMaterials, v0: torch.Tensor | None = None) -> SimResult:
         """Forward rollout without gradients (see :func:`simulate`)."""
@@ -341,12 +343,16 @@ class Simulator:
             # tensors, as the differentiable rollout does).
             xs = box.to_world(stack_arrays([s[0] for s in states]).double()).to(device=x0.device, dtype=x0.dtype)
             xs[0] = x0
-            S = self.scenario.settle_frames
-            settling_left = float((xs[S] - xs[S - 1]).norm(dim=-1).max()) if S > 0 else 0.0
-            xs, Fs = self._clip(xs, stack_arrays([s[3] for s in states]).to(x0.device))
+            return self._result(xs, stack_arrays([s[3] for s in states]).to(x0.device), step)
+
+    def _result(self, xs: torch.Tensor, Fs: torch.Tensor, step: Timestep) -> SimResult:
+        """The clip of a rollout over settling + clip (``xs`` [S + T, P, 3] metres, ``Fs`` [S + T, P, 3, 3])."""
+        S = self.scenario.settle_frames
+        settling_left = float((xs[S] - xs[S - 1]).detach().norm(dim=-1).max()) if S > 0 else 0.0
+        positions, F = self._clip(xs, Fs)
         times = torch.arange(self.num_frames, dtype=torch.float64) * self.config.frame_dt
-        return SimResult(xs, Fs, times, step.substeps, step.dt,
-                         [c.trajectory()[: self.num_frames].to(x0.dtype) for c in self.scenario.colliders],
+        return SimResult(positions, F, times, step.substeps, step.dt,
+                         [c.trajectory()[: self.num_frames].to(xs.dtype) for c in self.scenario.colliders],
                          settling_left)
 
 

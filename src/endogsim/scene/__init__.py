@@ -16,8 +16,8 @@ _EXPORTS = {
     "SceneSpec": "schema", "SceneObject": "schema", "ToolCapsule": "schema", "ScenarioSpec": "schema",
     "CameraSpec": "schema", "SimSettings": "schema", "load_scene_spec": "schema",
     "SimScene": "folder", "load_sim_scene": "folder", "read_observations": "folder",
-    "Rendered": "forward", "simulate_materials": "forward", "frame_gaussians": "forward",
-    "render_sequence": "forward",
+    "Rendered": "forward", "simulate_materials": "forward", "same_materials": "forward", "Simulations": "forward",
+    "frame_gaussians": "forward", "render_sequence": "forward",
     "tool_offsets": "motion", "translations": "motion", "tool_capsule": "motion", "tool_speed": "motion",
 }
 

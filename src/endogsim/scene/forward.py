@@ -15,7 +15,7 @@ the optimiser's log10 E and raw nu).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -23,10 +23,11 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.rasterize_torch import world_to_camera
 from endogsim.gaussians.render import rasterize
-from endogsim.physics import GradMode, ObjectMaterials, drive_gaussians
+from endogsim.physics import GradMode, ObjectMaterials, SimResult, drive_gaussians
 from endogsim.scene.folder import SimScene
 
-__all__ = ["Rendered", "simulate_materials", "frame_gaussians", "frame_opacities", "in_view", "render_sequence"]
+__all__ = ["Rendered", "simulate_materials", "same_materials", "Simulations", "frame_gaussians", "frame_opacities",
+           "in_view", "render_sequence"]
 
 
 @dataclass
@@ -50,11 +51,40 @@ class Rendered:
     tracks: torch.Tensor | None = None
 
 
-def simulate_materials(scene: SimScene, materials: ObjectMaterials,
-                       grad_mode: GradMode = "frame") -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable rollout of the scene's particles over all its frames: positions [T, P, 3] (m) and
-    F [T, P, 3, 3]; gradients flow to ``materials``' E, nu and density."""
-    return scene.simulator().rollout(materials, grad_mode)
+def simulate_materials(scene: SimScene, materials: ObjectMaterials, grad_mode: GradMode = "frame") -> SimResult:
+    """Differentiable rollout of the scene's particles over all its frames: its positions [T, P, 3] (m) and
+    F [T, P, 3, 3] carry gradients to ``materials``' E, nu and density (the same numbers as a forward-only
+    ``scene.simulator().simulate(materials)``)."""
+    return scene.simulator().run(materials, grad_mode)
+
+
+def same_materials(a: ObjectMaterials, b: ObjectMaterials) -> bool:
+    """Whether the simulator gets the same materials from ``a`` and ``b``, to the last bit (every object's E,
+    nu, density, constitutive model and yield stress; NaN, an id without a record, equals NaN): their
+    simulations are then the same."""
+    def same(x: torch.Tensor, y: torch.Tensor) -> bool:
+        x, y = x.detach(), y.detach()
+        return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
+
+    return all(same(getattr(a, n), getattr(b, n)) for n in ("E", "nu", "density", "model", "yield_stress"))
+
+
+class Simulations:
+    """Simulations of one scene that were run already (e.g. an identification's iterates), found again by
+    their materials: a field simulated anew with the same materials would give the same numbers."""
+
+    def __init__(self) -> None:
+        self._kept: dict[str, tuple[ObjectMaterials, SimResult]] = {}
+
+    def keep(self, slot: str, materials: ObjectMaterials, result: SimResult) -> None:
+        """Keep ``result`` (detached) as the simulation of ``materials`` under ``slot``, replacing the one there."""
+        detached = {n: getattr(materials, n).detach().clone() for n in ("E", "nu", "density", "model", "yield_stress")}
+        self._kept[slot] = (ObjectMaterials(**detached),
+                            replace(result, positions=result.positions.detach(), F=result.F.detach()))
+
+    def find(self, materials: ObjectMaterials) -> SimResult | None:
+        """A kept simulation of exactly ``materials``, or None."""
+        return next((r for m, r in self._kept.values() if same_materials(m, materials)), None)
 
 
 def frame_gaussians(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
