@@ -89,7 +89,7 @@ def register(app: typer.Typer) -> None:
                              on_trial=trial_done)
             bar.update(task, completed=max(iters, 1))
             for t in bar.tasks:
-                if trials and t.id == trials[0]:  # every trial ended: the count is known
+                if t.id in trials:  # every trial ended: the count is known
                     bar.update(t.id, total=t.completed, description="intervals")
         # The source says whether the video moved the value (identified, a one-sided estimate) or not (prior);
         # the interval what the video and the discretisation leave open around it.

@@ -11,7 +11,7 @@ E, nu and density may require gradients: :func:`endogsim.physics.mpm_rollout` di
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -46,7 +46,7 @@ class ObjectMaterials:
 
     def __post_init__(self) -> None:
         M = self.E.shape[0] if self.E.ndim == 1 else -1
-        for name in ("E", "nu", "density", "model", "yield_stress"):
+        for name in (f.name for f in fields(self)):
             a = getattr(self, name)
             if a.ndim != 1 or a.shape[0] != M:
                 raise MaterialError(f"ObjectMaterials.{name} has shape {tuple(a.shape)}; every field must be [M] "
@@ -54,6 +54,10 @@ class ObjectMaterials:
 
     def __len__(self) -> int:
         return self.E.shape[0]
+
+    def detached(self) -> "ObjectMaterials":
+        """A copy without gradients (cloned: later in-place changes of these tensors do not reach it)."""
+        return ObjectMaterials(**{f.name: getattr(self, f.name).detach().clone() for f in fields(self)})
 
     @staticmethod
     def of(E, nu, density, model: str | Sequence[str] = "fixed_corotated",

@@ -15,7 +15,7 @@ the optimiser's log10 E and raw nu).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -66,7 +66,7 @@ def same_materials(a: ObjectMaterials, b: ObjectMaterials) -> bool:
         x, y = x.detach(), y.detach()
         return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
 
-    return all(same(getattr(a, n), getattr(b, n)) for n in ("E", "nu", "density", "model", "yield_stress"))
+    return all(same(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
 
 
 class Simulations:
@@ -78,8 +78,7 @@ class Simulations:
 
     def keep(self, slot: str, materials: ObjectMaterials, result: SimResult) -> None:
         """Keep ``result`` (detached) as the simulation of ``materials`` under ``slot``, replacing the one there."""
-        detached = {n: getattr(materials, n).detach().clone() for n in ("E", "nu", "density", "model", "yield_stress")}
-        self._kept[slot] = (ObjectMaterials(**detached),
+        self._kept[slot] = (materials.detached(),
                             replace(result, positions=result.positions.detach(), F=result.F.detach()))
 
     def find(self, materials: ObjectMaterials) -> SimResult | None:
