@@ -49,7 +49,9 @@ class IdentifyConfig:
             ``stopped_by_budget``. The learning-rate schedule follows ``iters`` only, so a stopped run is an
             unstopped one cut short, whatever the machine's speed. The default keeps a benchmark scene within
             10 minutes on a 2-core CPU, evaluation included.
-        tol: relative loss improvement below which an iteration does not count as progress.
+        tol: relative loss improvement below which an iteration does not count as progress; also the least
+            relative rise of the loss that counts as evidence on a parameter's slice
+            (:func:`endogsim.identify.uncertainty.counted_z`).
         patience: stop after this many iterations without progress (early stopping).
         stationary_patience: stop after this many consecutive iterations whose gradient could not make
             progress even over a whole unit step: |d loss / d log10 E| (per decade) and |d loss / d raw nu|

@@ -444,7 +444,8 @@ def identify(
                 # built: the trials may start side by side); a run resumed with nothing left to iterate, or
                 # from an older checkpoint, evaluates it first, alone.
                 reference=best.get("per_frame") if done_here else None,
-                then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial)
+                then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
+                min_relative_rise=cfg.tol)
         ident = identified_field(init_field, final, intervals)
     evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,

@@ -151,7 +151,7 @@ def identifiable_table(intervals: list[ParameterInterval]) -> dict:
             "statistical_interval": iv.statistical_interval, "discretisation": iv.discretisation,
             "search_box": iv.search_box, "best": iv.best,
             "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
-                         "significant_z": iv.significant_z,
+                         "significant_z": iv.significant_z, "min_relative_rise": iv.min_relative_rise,
                          "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z} for v, d, se, z in iv.slice]}}
     return out
 

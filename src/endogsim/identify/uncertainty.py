@@ -18,6 +18,16 @@ end; nu by 0.02, 0.06, then to the box's end) and stop at the first significant 
 declared not identifiable only after the loss stayed within its noise over the whole search box on a side.
 One whose first gradient was zero is not identifiable, whatever its slice.
 
+A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
+(identification's ``tol``, the relative change its optimiser counts as no progress) counts as no rise (z 0),
+however consistent over the frames. The frame-to-frame test alone cannot see such a floor: two simulations
+that differ by float32 rounding differ consistently, frame after frame. Measured on CholecSeg8K's
+calibration (docs/REAL_VIDEO.md section 6): moving the gallbladder's E by a factor 1 + 1e-7, 1 + 1e-5 or
+1 + 1e-3 changed every particle's trajectory by the same 5e-6 mm RMS (rounding; the tissue's whole simulated
+motion was 1.4 um) and the loss by 0.7-1.0e-5 of its value, with |z| up to 1.2, while other trials of that
+run rose "significantly" (z 2-3.6) by 2e-5 to 3e-4 of it: enough to call a parameter identifiable from
+noise. No suite scene, demo or pulling run has a trial above the critical z with a rise below 1e-3.
+
 The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
 with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
 where s = sqrt(n) std(g_t) / H is the (sandwich) standard error of theta*. The level-``LEVEL`` interval
@@ -63,7 +73,8 @@ from endogsim.materials.field import MaterialParams
 from endogsim.warp_runtime import Cancelled, check_cancelled, run_independent
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
-           "DiscretisationError", "paired_z", "critical_z", "significant_z", "interval_from_slice", "walk_slice",
+           "DiscretisationError", "counted_z", "paired_z", "critical_z", "significant_z", "interval_from_slice",
+           "walk_slice",
            "walk_side", "slice_from_sides",
            "identifiability", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
            "parameter_intervals"]
@@ -103,6 +114,8 @@ class ParameterInterval:
             compared frames, nothing excluded).
         significant_z: the z above which a trial value's loss counted as significantly higher
             (:func:`significant_z`; None likewise).
+        min_relative_rise: a trial's loss had to rise by at least this share of the optimum's to count
+            (:func:`counted_z`; 0: any rise counted).
         statistical_interval: [lo, hi] the interval from the loss's frame-to-frame noise alone (None: no
             discretisation error was measured, and ``interval`` is this one).
         discretisation: :class:`DiscretisationError` as a dict (None: not measured: no coarser simulation,
@@ -121,11 +134,18 @@ class ParameterInterval:
     first_gradient: float | None = None
     critical_z: float | None = None
     significant_z: float | None = None
+    min_relative_rise: float = 0.0
     statistical_interval: list[float] | None = None
     discretisation: dict | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
+
+
+def counted_z(delta: float, z: float, min_rise: float) -> float:
+    """The z a trial counts with: its :func:`paired_z` ``z``, or at most 0 where its loss rose by less than
+    ``min_rise`` (``delta`` < ``min_rise``; module docstring: a rise too small to matter is no rise)."""
+    return z if delta >= min_rise else min(z, 0.0)
 
 
 def paired_z(per_frame: dict[int, float], reference: dict[int, float]) -> tuple[float, float, float]:
@@ -204,7 +224,7 @@ class Slice:
 
 def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
                compare: Callable[[float], tuple[float, float, float]], threshold: float,
-               significance: float | None = None) -> Slice:
+               significance: float | None = None, min_rise: float = 0.0) -> Slice:
     """Walk one parameter's slice outward from ``best``: its interval and what it shows on each side.
 
     On each side (down, then up) the trial values are ``best -+ step`` for ``steps``, clipped to ``box``; a
@@ -219,9 +239,10 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
         compare: trial value -> (Delta L, SE, z) against the optimum (:func:`paired_z`).
         threshold: z above which a value is excluded from the interval (:func:`critical_z`).
         significance: z above which the loss counts as significantly higher (:func:`significant_z`).
+        min_rise: the least rise of the loss (Delta L) that counts (:func:`counted_z`).
     """
     stop = _stop_z(threshold, significance)
-    down, up = (walk_side(best, steps, box, compare, stop, side) for side in (-1, 1))
+    down, up = (walk_side(best, steps, box, compare, stop, side, min_rise) for side in (-1, 1))
     return slice_from_sides(best, box, threshold, stop, down, up)
 
 
@@ -229,15 +250,16 @@ def _stop_z(threshold: float, significance: float | None) -> float:
     return threshold if significance is None else max(threshold, significance)
 
 
-#: One side of a slice (:func:`walk_side`): [(value, z)], records [[value, Delta L, SE, z]], failures
+#: One side of a slice (:func:`walk_side`): [(value, counted z)], records [[value, Delta L, SE, z]], failures
 #: [(value, message)].
 SliceSide = tuple[list[tuple[float, float]], list[list[float]], list[tuple[float, str]]]
 
 
 def walk_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
-              compare: Callable[[float], tuple[float, float, float]], stop: float, side: int) -> SliceSide:
-    """One side (-1: down, 1: up) of :func:`walk_slice`: trial values ``best + side * step`` until one's z
-    exceeds ``stop``, the box ends, or a simulation fails."""
+              compare: Callable[[float], tuple[float, float, float]], stop: float, side: int,
+              min_rise: float = 0.0) -> SliceSide:
+    """One side (-1: down, 1: up) of :func:`walk_slice`: trial values ``best + side * step`` until one's
+    counted z (:func:`counted_z`) exceeds ``stop``, the box ends, or a simulation fails."""
     points: list[tuple[float, float]] = []
     records: list[list[float]] = []
     failures: list[tuple[float, str]] = []
@@ -250,9 +272,9 @@ def walk_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
         except EndoGSimError as e:
             failures.append((v, str(e)))
             break
-        points.append((v, z))
+        points.append((v, counted_z(delta, z, min_rise)))
         records.append([v, delta, se, z])
-        if z > stop:
+        if points[-1][1] > stop:
             break
     return points, records, failures
 
@@ -406,6 +428,7 @@ def parameter_intervals(
     reference: dict[int, float] | None = None,
     then: Callable[[list[ParameterInterval]], object] | None = None,
     on_trial: Callable[[dict], None] | None = None,
+    min_relative_rise: float = 0.0,
 ) -> list[ParameterInterval]:
     """Intervals and identifiability of every slot's log10 E (and nu) around the optimum ``params``.
 
@@ -429,6 +452,8 @@ def parameter_intervals(
             evaluating the materials they imply) runs while the coarse walks do. Its result is dropped.
         on_trial: called after every trial simulation, from the thread that ran it (progress display), with
             {"object": name, "parameter": "E" | "nu", "value": Pa or -, "grid": "fine" | "coarse"}.
+        min_relative_rise: the least rise of the loss, relative to the optimum's, that counts (module
+            docstring, :func:`counted_z`; identification passes its ``tol``).
     """
     if reference is None:
         # The optimum first, alone: every trial is compared with it, and the first launches of Warp's kernels
@@ -436,6 +461,7 @@ def parameter_intervals(
         reference = evaluate(params)
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     stop = _stop_z(threshold, significance)
+    min_rise = min_relative_rise * abs(float(sum(reference.values())))
     cancel = threading.Event()  # set when a trial fails: the other walks stop starting trials
     # Every coarse walk starts at the optimum: the first to get there simulates it, the other waits for it
     # (a failure there is each walk's, and each says so).
@@ -491,8 +517,8 @@ def parameter_intervals(
                     return e
 
             plans.append((slot, oids, name, what, steps, box, best))
-            sides += [partial(_resolving, down, partial(walk_side, best, steps, box, compare, stop, -1)),
-                      partial(_resolving, up, partial(walk_side, best, steps, box, compare, stop, 1))]
+            sides += [partial(_resolving, down, partial(walk_side, best, steps, box, compare, stop, -1, min_rise)),
+                      partial(_resolving, up, partial(walk_side, best, steps, box, compare, stop, 1, min_rise))]
             walks += [partial(coarse_walk, -1), partial(coarse_walk, 1)] if coarse_loss is not None else []
 
     def interval_of(plan: tuple, down: SliceSide, up: SliceSide, coarse: list) -> ParameterInterval:
@@ -508,6 +534,11 @@ def parameter_intervals(
             g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
         ok, reason = identifiability(sl, g0, "the search box", significance)
         to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+        small = [r for r in records if r[3] > threshold and r[1] < min_rise]
+        if small:
+            reason += (f"; {len(small)} trial value(s) whose loss rose consistently over the frames but by less "
+                       f"than {min_relative_rise:.2g} of its value did not count (z "
+                       + ", ".join(f"{r[3]:.3g}" for r in small) + ")")
         for v, message in sl.failures:
             reason += f"; the simulation at {what} = {to_value(v):.4g} failed ({message}), which ended the slice there"
         statistical, disc = None, None
@@ -533,7 +564,7 @@ def parameter_intervals(
             slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
             critical_z=threshold if math.isfinite(threshold) else None,
             significant_z=significance if math.isfinite(significance) else None,
-            statistical_interval=statistical, discretisation=disc)
+            min_relative_rise=min_relative_rise, statistical_interval=statistical, discretisation=disc)
 
     def assemble(slices: list[SliceSide], coarse: list[CoarseSide | EndoGSimError | None]) -> list[ParameterInterval]:
         """Every parameter's interval from its slice's two sides and its coarse walk's (None: none)."""
