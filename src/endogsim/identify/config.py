@@ -58,7 +58,8 @@ class IdentifyConfig:
             (per raw unit) all below ``tol`` times the loss. Adam normalises its steps, so on a flat loss it
             walks a full learning rate on noise; this ends such a run (e.g. a real clip where no instrument
             moves the tissue: relative gradients 1e-5 to 6e-4 per decade, against 6e-3 to 1 on the suite's
-            and the demo's scenes). 0: never.
+            and the demo's scenes; docs/IDENTIFICATION.md section 2: one such iteration already separates
+            the regimes, so one is enough). 0: never.
         global_material: tie every deformable object to one (E, nu) pair (the "no material field" ablation).
         nu_bounds: (lo, hi) of the bounded Poisson parametrisation nu = lo + (hi - lo) sigmoid(raw).
         E_min, E_max: the search box for E (Pa): soft tissue in vivo is 0.5-20 kPa, tensile tests of organ
@@ -108,7 +109,7 @@ class IdentifyConfig:
     time_budget: float | None = 480.0
     tol: float = 1e-3
     patience: int = 10
-    stationary_patience: int = 2
+    stationary_patience: int = 1
     global_material: bool = False
     nu_bounds: tuple[float, float] = (0.0, 0.49)
     E_min: float = 50.0

@@ -401,9 +401,9 @@ def identify(
             stopped = "converged"
             break
     if stopped == "converged" and history[-1].get("stationary"):  # also when a resumed run finds it stopped
-        notes.append(f"stopped at iteration {history[-1]['iteration']}: for {cfg.stationary_patience} iterations in "
-                     f"a row no parameter's gradient could change the loss by {cfg.tol:g} of itself over a unit "
-                     "step (a flat, stationary loss)")
+        run = "" if cfg.stationary_patience == 1 else f" for {cfg.stationary_patience} iterations in a row"
+        notes.append(f"stopped at iteration {history[-1]['iteration']}:{run} no parameter's gradient could change "
+                     f"the loss by {cfg.tol:g} of itself over a unit step (a flat, stationary loss)")
 
     intervals: list[ParameterInterval] = []
     evaluated: dict = {}  # {"field", "evaluation"}: the field the slices imply, evaluated during the intervals
