@@ -19,8 +19,10 @@ declared not identifiable only after the loss stayed within its noise over the w
 One whose first gradient was zero is not identifiable, whatever its slice.
 
 A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
-(identification's ``tol``, the relative change its optimiser counts as no progress) counts as no rise (z 0),
-however consistent over the frames. The frame-to-frame test alone cannot see such a floor: two simulations
+(identification's ``tol``, the relative change its optimiser counts as no progress) counts with at most the
+interval's critical z, however consistent over the frames: it neither excludes its value from the interval
+nor counts as significant (a rise below both thresholds keeps its z, so the interval's interpolated ends move
+only where the floor decides). The frame-to-frame test alone cannot see such a floor: two simulations
 that differ by float32 rounding differ consistently, frame after frame. Measured on CholecSeg8K's
 calibration (docs/REAL_VIDEO.md section 6): moving the gallbladder's E by a factor 1 + 1e-7, 1 + 1e-5 or
 1 + 1e-3 changed every particle's trajectory by the same 5e-6 mm RMS (rounding; the tissue's whole simulated
@@ -142,10 +144,11 @@ class ParameterInterval:
         return asdict(self)
 
 
-def counted_z(delta: float, z: float, min_rise: float) -> float:
-    """The z a trial counts with: its :func:`paired_z` ``z``, or at most 0 where its loss rose by less than
-    ``min_rise`` (``delta`` < ``min_rise``; module docstring: a rise too small to matter is no rise)."""
-    return z if delta >= min_rise else min(z, 0.0)
+def counted_z(delta: float, z: float, min_rise: float, ceiling: float) -> float:
+    """The z a trial counts with: its :func:`paired_z` ``z``, or at most ``ceiling`` (the interval's critical z)
+    where its loss rose by less than ``min_rise`` (module docstring: a rise too small to matter neither excludes
+    a value nor is significant)."""
+    return z if delta >= min_rise else min(z, ceiling)
 
 
 def paired_z(per_frame: dict[int, float], reference: dict[int, float]) -> tuple[float, float, float]:
@@ -242,7 +245,7 @@ def walk_slice(best: float, steps: tuple[float, ...], box: tuple[float, float],
         min_rise: the least rise of the loss (Delta L) that counts (:func:`counted_z`).
     """
     stop = _stop_z(threshold, significance)
-    down, up = (walk_side(best, steps, box, compare, stop, side, min_rise) for side in (-1, 1))
+    down, up = (walk_side(best, steps, box, compare, stop, side, min_rise, threshold) for side in (-1, 1))
     return slice_from_sides(best, box, threshold, stop, down, up)
 
 
@@ -257,9 +260,10 @@ SliceSide = tuple[list[tuple[float, float]], list[list[float]], list[tuple[float
 
 def walk_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
               compare: Callable[[float], tuple[float, float, float]], stop: float, side: int,
-              min_rise: float = 0.0) -> SliceSide:
+              min_rise: float = 0.0, ceiling: float = math.inf) -> SliceSide:
     """One side (-1: down, 1: up) of :func:`walk_slice`: trial values ``best + side * step`` until one's
-    counted z (:func:`counted_z`) exceeds ``stop``, the box ends, or a simulation fails."""
+    counted z (:func:`counted_z` with ``min_rise`` and ``ceiling``) exceeds ``stop``, the box ends, or a
+    simulation fails."""
     points: list[tuple[float, float]] = []
     records: list[list[float]] = []
     failures: list[tuple[float, str]] = []
@@ -272,7 +276,7 @@ def walk_side(best: float, steps: tuple[float, ...], box: tuple[float, float],
         except EndoGSimError as e:
             failures.append((v, str(e)))
             break
-        points.append((v, counted_z(delta, z, min_rise)))
+        points.append((v, counted_z(delta, z, min_rise, ceiling)))
         records.append([v, delta, se, z])
         if points[-1][1] > stop:
             break
@@ -517,8 +521,10 @@ def parameter_intervals(
                     return e
 
             plans.append((slot, oids, name, what, steps, box, best))
-            sides += [partial(_resolving, down, partial(walk_side, best, steps, box, compare, stop, -1, min_rise)),
-                      partial(_resolving, up, partial(walk_side, best, steps, box, compare, stop, 1, min_rise))]
+            sides += [partial(_resolving, down, partial(walk_side, best, steps, box, compare, stop, -1, min_rise,
+                                                       threshold)),
+                      partial(_resolving, up, partial(walk_side, best, steps, box, compare, stop, 1, min_rise,
+                                                     threshold))]
             walks += [partial(coarse_walk, -1), partial(coarse_walk, 1)] if coarse_loss is not None else []
 
     def interval_of(plan: tuple, down: SliceSide, up: SliceSide, coarse: list) -> ParameterInterval:
