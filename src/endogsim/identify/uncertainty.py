@@ -28,7 +28,8 @@ calibration (docs/REAL_VIDEO.md section 6): moving the gallbladder's E by a fact
 1 + 1e-3 changed every particle's trajectory by the same 5e-6 mm RMS (rounding; the tissue's whole simulated
 motion was 1.4 um) and the loss by 0.7-1.0e-5 of its value, with |z| up to 1.2, while other trials of that
 run rose "significantly" (z 2-3.6) by 2e-5 to 3e-4 of it: enough to call a parameter identifiable from
-noise. No suite scene, demo or pulling run has a trial above the critical z with a rise below 1e-3.
+noise. No stored run of the suite or the demo has a trial above the critical z with a rise below 1e-3
+(docs/IDENTIFICATION.md section 1); both real clips have several.
 
 The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
 with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
