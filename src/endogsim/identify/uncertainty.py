@@ -77,8 +77,7 @@ from endogsim.warp_runtime import Cancelled, check_cancelled, run_independent
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
            "DiscretisationError", "counted_z", "paired_z", "critical_z", "significant_z", "interval_from_slice",
-           "walk_slice",
-           "walk_side", "slice_from_sides",
+           "walk_slice", "walk_side", "slice_from_sides",
            "identifiability", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
            "parameter_intervals"]
 
@@ -541,7 +540,7 @@ def parameter_intervals(
             g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
         ok, reason = identifiability(sl, g0, "the search box", significance)
         to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
-        small = [r for r in records if r[3] > threshold and r[1] < min_rise]
+        small = [r for r in records if counted_z(r[1], r[3], min_rise, threshold) < r[3]]  # the floor decided
         if small:
             reason += (f"; {len(small)} trial value(s) whose loss rose consistently over the frames but by less "
                        f"than {min_relative_rise:.2g} of its value did not count (z "
