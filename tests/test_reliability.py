@@ -311,6 +311,30 @@ def test_identify_never_writes_nan_and_refuses_corrupt_state(tiny, tmp_path):
     assert r.exit_code == 0, r.output
 
 
+def test_an_evaluation_never_reads_a_flow_cache_made_from_other_frames(tmp_path):
+    """The report scores EPE against the observed flow through identification's keyed cache: a cache left by
+    another video (the same file name, another key) is estimated again, not served."""
+    from types import SimpleNamespace
+
+    from endogsim.identify import IdentifyConfig
+    from endogsim.identify.loss import observed_flow
+    from endogsim.identify.report import reference_observed_flow
+    from endogsim.io.atomic import save_npz_atomic
+
+    rng = np.random.default_rng(0)
+    frames = np.clip(rng.random((3, 40, 48, 3), dtype=np.float32), 0, 1)
+    cfg = IdentifyConfig()
+    save_npz_atomic(tmp_path / "observed_flow.npz", compressed=True, flow=np.full((2, 40, 48, 2), 7.0, np.float32),
+                    key=np.array("another video"))
+    got = reference_observed_flow(SimpleNamespace(gt_flow=None, frames=frames), cfg, tmp_path)
+    np.testing.assert_array_equal(got, observed_flow(frames, cfg.flow))
+    assert not np.any(got == 7.0)
+    again = reference_observed_flow(SimpleNamespace(gt_flow=None, frames=frames), cfg, tmp_path)  # now cached
+    np.testing.assert_array_equal(again, got)
+    with_truth = SimpleNamespace(gt_flow=np.zeros((2, 40, 48, 2), np.float32), frames=frames)
+    assert reference_observed_flow(with_truth, cfg, tmp_path) is None  # the ground truth is the reference
+
+
 def test_identify_and_simulate_refuse_materials_for_objects_the_scene_lacks(tiny, tmp_path):
     from endogsim.identify import run_identify
     from endogsim.pipeline.simulate import simulate_interaction

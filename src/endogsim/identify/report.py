@@ -32,6 +32,7 @@ from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
 from endogsim.evaluate.report_html import discretisation_text, settling_text
 from endogsim.identify.config import IdentifyConfig
+from endogsim.identify.loss import observed_flow as estimate_observed_flow
 from endogsim.identify.optimize import IdentifyResult
 from endogsim.identify.uncertainty import ParameterInterval
 from endogsim.io.atomic import write_json_atomic, write_text_atomic
@@ -41,7 +42,7 @@ from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
 from endogsim.scene.forward import Simulations, render_sequence
 
-__all__ = ["Evaluation", "evaluate_field", "cached_observed_flow", "material_errors", "settling_record",
+__all__ = ["Evaluation", "evaluate_field", "reference_observed_flow", "material_errors", "settling_record",
            "write_outputs"]
 
 FLOW_ERROR_RANGE = 1.0  # pixels mapped to the top of the colour scale in the video
@@ -165,13 +166,14 @@ def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: n
                      for t in range(T)])
 
 
-def cached_observed_flow(run_dir: str | Path) -> np.ndarray | None:
-    """The observed flow identification cached in ``run_dir`` (None: none there)."""
-    path = Path(run_dir) / "observed_flow.npz"
-    if not path.is_file():
+def reference_observed_flow(problem: SimScene, config: IdentifyConfig, run_dir: str | Path) -> np.ndarray | None:
+    """The observed flow [T-1, H, W, 2] (px) an evaluation of ``problem`` compares with: identification's own
+    estimate, read through its cache in ``run_dir`` (keyed by the frames and the estimator, so a stale file is
+    never served; :func:`~endogsim.identify.loss.observed_flow`). None where the scene has ground-truth flow,
+    which :func:`evaluate_field` uses instead."""
+    if problem.gt_flow is not None:
         return None
-    with np.load(path) as d:
-        return d["flow"]
+    return estimate_observed_flow(problem.frames, config.flow, Path(run_dir) / "observed_flow.npz")
 
 
 def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult, config: IdentifyConfig,
@@ -188,7 +190,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     write_json_atomic(run / "history.json", result.history)
     ev = result.evaluation
     # The observed flow (pulling: 41 MB) is read only for an evaluation still to make.
-    obs_flow = cached_observed_flow(run) if evaluate_init or not isinstance(ev, Evaluation) else None
+    to_evaluate = evaluate_init or not isinstance(ev, Evaluation)
+    obs_flow = reference_observed_flow(problem, config, run) if to_evaluate else None
     if not isinstance(ev, Evaluation):
         ev = evaluate_field(problem, result.field, obs_flow, result.simulations)
     re = material_errors(problem, result.field)

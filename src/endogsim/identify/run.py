@@ -10,7 +10,7 @@ import numpy as np
 from endogsim.errors import DataError, MaterialError
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import CHECKPOINT_NAME, identify
-from endogsim.identify.report import cached_observed_flow, evaluate_field, write_outputs
+from endogsim.identify.report import evaluate_field, reference_observed_flow, write_outputs
 from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.materials.init import BACKENDS
@@ -88,7 +88,7 @@ def run_identify(
         check_field_objects(pb, fld, init)
         # The identified field is evaluated while the intervals' last trials run, where they run side by side.
         result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict,
-                          evaluate=lambda f, known: evaluate_field(pb, f, cached_observed_flow(out), known),
+                          evaluate=lambda f, known: evaluate_field(pb, f, reference_observed_flow(pb, cfg, out), known),
                           on_trial=on_trial)
         return write_outputs(out, pb, result, cfg, init_name=init, video=video, evaluate_init=evaluate_init)
 
