@@ -240,6 +240,37 @@ def test_a_moving_camera_renders_each_frame_in_its_own_view(tiny_scene):
     torch.testing.assert_close(plain.project(m), Camera(p.camera.K, p.camera.width, p.camera.height, V[2]).project(pts))
 
 
+def test_simulated_frames_are_exposed_and_cropped_as_the_endoscope_filmed_them(tiny_scene):
+    """A moving endoscope's light and auto-exposure change every frame's colours, and its image ends at a
+    circle: the simulated frames get the reconstruction's exposure of that frame and its field of view, at
+    any render scale, differentiably (brute force: the bare render mapped by hand)."""
+    from endogsim.scene.forward import render_sequence
+
+    p = tiny_scene
+    T = p.num_frames
+    res = p.simulator().simulate(_truth(p))
+    cam = p.camera.scaled(0.5)
+    exposure = torch.zeros(T, 2, 3)
+    exposure[:, 0] = torch.linspace(0, 0.2, T)[:, None] * torch.tensor([1.0, 0.5, -0.5])  # log gain
+    exposure[:, 1] = torch.linspace(0, 0.03, T)[:, None]  # bias
+    H, W = p.camera.height, p.camera.width
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    fov = (yy - H / 2) ** 2 + (xx - W / 2) ** 2 < (0.45 * H) ** 2
+    filmed = replace(p, exposure=exposure, field_of_view=fov)
+    bare = render_sequence(p, res.positions, res.F, cam, frames=[0, 3])
+    pos = res.positions.clone().requires_grad_(True)
+    seen = render_sequence(filmed, pos, res.F, cam, frames=[0, 3])
+    small = torch.nn.functional.interpolate(fov[None, None].float(), size=(cam.height, cam.width))[0, 0]
+    for k, t in enumerate((0, 3)):
+        expect = (bare.rgb[k] * torch.exp(exposure[t, 0]) + exposure[t, 1]) * small[..., None]
+        torch.testing.assert_close(seen.rgb[k], expect)
+    assert float(seen.rgb[1].detach()[small == 0].abs().max()) == 0 and float(bare.rgb[1][small == 0].max()) > 0.1
+    torch.testing.assert_close(seen.flow, bare.flow)  # the motion is the same: only the colours are the camera's
+    torch.testing.assert_close(seen.alpha, bare.alpha)
+    seen.rgb[1].sum().backward()
+    assert pos.grad is not None and float(pos.grad.abs().sum()) > 0
+
+
 def test_an_instrument_the_video_does_not_show_is_not_drawn(tiny_scene):
     from endogsim.scene.forward import render_sequence
 

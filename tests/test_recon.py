@@ -837,6 +837,7 @@ def test_field_of_view_is_what_every_training_frame_labels_background():
     assert field_of_view(ids[:, :, 1:4], [50], [0, 1, 2]) is None  # no border: the whole image
 
 
+@pytest.mark.filterwarnings("ignore:instrument 31. its Gaussians measure a radius")  # the scene's collider fit
 def test_renders_are_black_outside_the_endoscope_field_of_view(synthetic, tmp_path):
     """A CholecSeg8K-style clip (no depth, no poses, a black border labelled background): the test renders
     and the reloaded model are black outside the field of view, like the camera's pictures."""
@@ -864,6 +865,21 @@ def test_renders_are_black_outside_the_endoscope_field_of_view(synthetic, tmp_pa
     # the Gaussians themselves do reach into the border: the field of view is what blacks it out
     bare = render_gaussians(rec.gaussians_at(1, include_tools=False), rec.camera_at(1), backend="torch").rgb
     assert bare.numpy()[border].max() > 0.1
+
+    # the scene folder made from it carries the same exposure and field of view, so simulated frames are
+    # black there too and exposed as the reconstruction's renders are (endogsim.scene.forward.as_filmed)
+    from endogsim.pipeline.scene_from_recon import scene_from_reconstruction
+    from endogsim.scene.folder import load_sim_scene
+    from endogsim.scene.forward import render_sequence
+
+    p = load_sim_scene(scene_from_reconstruction(tmp_path / "run", clip, tmp_path / "scene"))
+    assert torch.equal(p.field_of_view, rec.field_of_view)
+    torch.testing.assert_close(p.exposure[:, 0], rec.exposure.log_gain[0, :p.num_frames].detach())
+    torch.testing.assert_close(p.exposure[:, 1], rec.exposure.bias[0, :p.num_frames].detach())
+    assert float(p.exposure[1:].abs().max()) > 0  # learnt, not the identity
+    rest = p.particles.x[None].repeat(2, 1, 1)
+    sim = render_sequence(p, rest, torch.eye(3).expand(*rest.shape[:2], 3, 3), p.camera, frames=[1]).rgb[0]
+    assert float(sim.numpy()[border].max()) == 0 and float(sim.numpy()[~border].mean()) > 0.1
 
 
 def test_frame_exposure_holds_frame0_and_fills_untrained_frames():

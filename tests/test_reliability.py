@@ -782,3 +782,52 @@ def test_a_new_interaction_draws_the_instruments_the_video_hid(tiny, tmp_path):
     assert problem.tool_visible == {}  # the video's visibility is not the new experiment's
     r = cli("simulate", scene, "-i", "poke", "--out", tmp_path / "sim", "--frames", 6, "--no-ply")
     assert r.exit_code == 0, r.output  # longer than the clip: it indexed the clip's visibility past its end
+
+
+def _moving_endoscope(d, frames=FRAMES):
+    """scene.json edit: a camera that moves sideways 1 mm a frame and brightens 5% a frame (a moving
+    endoscope's reconstruction), with a field of view."""
+    views = np.eye(4)[None].repeat(frames, 0)
+    views[:, 0, 3] = -0.001 * np.arange(frames)
+    d["camera"]["viewmats"] = views.tolist()
+    d["camera"]["exposure"] = {"log_gain": [[0.05 * t] * 3 for t in range(frames)], "bias": [[0.0] * 3] * frames}
+    d["files"]["field_of_view"] = "field_of_view.png"
+
+
+def test_a_scene_folder_carries_the_endoscopes_exposure_and_field_of_view(tiny, tmp_path):
+    import cv2
+    import torch
+
+    from endogsim.scene.folder import load_sim_scene
+
+    scene = scene_copy(tiny, tmp_path / "scene", _moving_endoscope)
+    d = json.loads((scene / "scene.json").read_text())
+    circle = np.zeros((d["camera"]["height"], d["camera"]["width"]), np.uint8)
+    cv2.circle(circle, (circle.shape[1] // 2, circle.shape[0] // 2), circle.shape[0] // 2, 255, -1)
+    cv2.imwrite(str(scene / "field_of_view.png"), circle)
+    p = load_sim_scene(scene)
+    assert p.exposure.shape == (FRAMES, 2, 3) and float(p.exposure[2, 0, 1]) == pytest.approx(0.10)
+    assert torch.equal(p.field_of_view, torch.from_numpy(circle > 0))
+
+    cv2.imwrite(str(scene / "field_of_view.png"), circle[:-2])
+    with pytest.raises(DataError, match="field_of_view.png: the field of view is .* the camera"):
+        load_sim_scene(scene)
+    bad = scene_copy(tiny, tmp_path / "bad", lambda d: (_moving_endoscope(d, FRAMES - 1)))
+    with pytest.raises(DataError, match="camera.exposure.log_gain = .* must be 4 x 3 finite"):
+        load_sim_scene(bad)
+
+
+def test_a_new_interaction_on_a_moving_endoscope_is_filmed_from_frame_0s_camera(tiny, tmp_path):
+    """The clip's camera path and exposure are the video's, like its instruments' visibility: a new experiment,
+    longer than the clip or not, is seen by frame 0's camera (the world frame), as frame 0 exposed it."""
+    from endogsim.pipeline.interaction import load_interaction
+    from endogsim.pipeline.simulate import build_interaction
+    from endogsim.scene.folder import load_sim_scene
+
+    scene = scene_copy(tiny, tmp_path / "scene", lambda d: (_moving_endoscope(d), d["files"].pop("field_of_view")))
+    base = load_sim_scene(scene)
+    assert base.viewmats is not None and base.exposure is not None
+    problem, _ = build_interaction(base, load_interaction("poke"))
+    assert problem.viewmats is None and problem.exposure is None
+    r = cli("simulate", scene, "-i", "poke", "--out", tmp_path / "sim", "--frames", 6, "--no-ply")
+    assert r.exit_code == 0, r.output  # it indexed the clip's 4 camera poses past their end

@@ -8,7 +8,8 @@
   gaussians_t0.ply              the reconstructed Gaussians of frame 0, with object ids
   tracks.npz                    the reconstruction's trajectories of sampled tissue Gaussians
                                 (:mod:`endogsim.scene.tracks`, identification's track term)
-  scene.json                    objects, camera (per-frame viewmats when the endoscope moves), and the
+  field_of_view.png             the endoscope's image circle (255 inside), when the video has a border
+  scene.json                    objects, camera (per-frame viewmats and exposure when the endoscope moves), the
                                 scenario: sim box, boundary conditions, one capsule collider per instrument
                                 moved by its reconstructed rigid motion, settling, discretisation
 
@@ -464,7 +465,11 @@ def scene_from_reconstruction(
         sc_doc = _real_scenario(objects, tissue_pts, frame_dt, scenario)
 
     cam_doc = {"K": cam.K.double().tolist(), "width": cam.width, "height": cam.height, "viewmat": np.eye(4).tolist(),
-               "viewmats": None if rec.viewmats is None else rec.viewmats[:T].double().tolist()}
+               "viewmats": None if rec.viewmats is None else rec.viewmats[:T].double().tolist(),
+               # each frame's colours as its camera exposed them: simulated renders compare like with like
+               "exposure": None if rec.exposure is None else
+               {"log_gain": rec.exposure.log_gain[0, :T].detach().double().tolist(),
+                "bias": rec.exposure.bias[0, :T].detach().double().tolist()}}
     doc = {
         "name": name or (gt.name if gt is not None else data.name), "seed": gt.seed if gt is not None else 0,
         "frames": T, "objects": objects, "scenario": sc_doc, "camera": cam_doc,
@@ -555,6 +560,9 @@ def scene_from_reconstruction(
                     src = Path(truth) / (pat % t)
                     if src.is_file():
                         shutil.copyfile(src, tmp / (pat % t))
+        if rec.field_of_view is not None:  # renders are black outside the endoscope's circle, as filmed
+            doc["files"]["field_of_view"] = "field_of_view.png"
+            cv2.imwrite(str(tmp / "field_of_view.png"), rec.field_of_view.cpu().numpy().astype(np.uint8) * 255)
         write_ply(g0.detach(), tmp / "gaussians_t0.ply")
         write_tissue_tracks(tmp / "tracks.npz", TissueTracks(idx, positions))
         write_json_atomic(tmp / "scene.json", doc)

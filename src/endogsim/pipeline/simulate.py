@@ -222,9 +222,11 @@ def build_interaction(problem, inter: Interaction):
         g = g.with_(opacity_logits=torch.where(hide, torch.full_like(g.opacity_logits, -30.0), g.opacity_logits))
     info["hidden_tools"] = hidden
     scenario = replace(problem.scenario, forces=forces, colliders=colliders)
-    # A new interaction is not the video: its instruments are drawn in every frame it simulates (the
-    # video's visibility is about the filmed frames, and the interaction may be longer).
-    return replace(problem, scenario=scenario, tool_transforms=tool_tf, gaussians=g, tool_visible={}), info
+    # A new interaction is not the video: its instruments are drawn in every frame it simulates, and it is
+    # seen by frame 0's camera (the world frame) as frame 0 exposed it (the video's visibility, camera path
+    # and exposure are about the filmed frames, and the interaction may be longer).
+    return replace(problem, scenario=scenario, tool_transforms=tool_tf, gaussians=g, tool_visible={}, viewmats=None,
+                   exposure=None), info
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -72,6 +72,9 @@ class SimScene:
         viewmats: [T, 4, 4] world -> camera per frame (a moving endoscope) or None (a still camera,
             ``camera.viewmat``).
         tracks: the reconstruction's tissue trajectories (``tracks.npz``) or None.
+        exposure: [T, 2, 3] log gain and bias of every frame's exposure (``camera.exposure``) or None.
+        field_of_view: [H, W] bool, the pixels inside the endoscope's image circle (``files.field_of_view``),
+            or None (the whole image). Renders are black outside it, like the filmed frames.
     """
 
     folder: Path
@@ -92,6 +95,8 @@ class SimScene:
     viewmats: torch.Tensor | None = None
     tracks: TissueTracks | None = None
     tool_visible: dict[int, torch.Tensor] = field(default_factory=dict)
+    exposure: torch.Tensor | None = None
+    field_of_view: torch.Tensor | None = None
     _simulator: Simulator | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
@@ -216,10 +221,22 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     tracks = None
     if spec.files.get("tracks"):
         tracks = read_tissue_tracks(folder / spec.files["tracks"], len(g.means), T)
+    exposure = None
+    if cam_t.exposure is not None:
+        exposure = torch.tensor([cam_t.exposure["log_gain"], cam_t.exposure["bias"]], dtype=torch.float32)
+        exposure = exposure.permute(1, 0, 2)[:T].contiguous()
+    fov = None
+    if spec.files.get("field_of_view"):
+        fov_file = folder / spec.files["field_of_view"]
+        fov = torch.from_numpy(read_grey(fov_file) > 127)  # written 0 / 255
+        if tuple(fov.shape) != (camera.height, camera.width):
+            raise DataError(f"{fov_file}: the field of view is {fov.shape[1]}x{fov.shape[0]}, the camera "
+                            f"{camera.width}x{camera.height}")
     return SimScene(folder=folder, spec=spec, labels=labels, frames=obs, object_masks=masks, camera=camera,
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
                            binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
-                           viewmats=viewmats, tracks=tracks, tool_visible=tool_visible)
+                           viewmats=viewmats, tracks=tracks, tool_visible=tool_visible, exposure=exposure,
+                           field_of_view=fov)
 
 
 def coarsened(scene: SimScene, factor: float) -> SimScene:

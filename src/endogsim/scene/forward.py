@@ -7,6 +7,9 @@
 A moving endoscope (``SimScene.viewmats``) is handled by rendering frame t in camera t's coordinates: the
 flow t -> t+1 then compares camera t's view of frame t with camera t+1's view of frame t+1, which is what an
 optical-flow estimator measures on the video.
+Each frame's colours are then mapped by that frame's exposure and blacked out beyond the endoscope's
+field of view, where the reconstruction learnt them (``SimScene.exposure``, ``SimScene.field_of_view``), so
+that a simulated frame differs from the filmed one by the motion, not by the camera's light.
 
 Every step is differentiable, so a loss on the renders back-propagates to E and nu (and through them to
 the optimiser's log10 E and raw nu).
@@ -24,10 +27,11 @@ from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.rasterize_torch import world_to_camera
 from endogsim.gaussians.render import rasterize
 from endogsim.physics import GradMode, ObjectMaterials, SimResult, drive_gaussians
+from endogsim.recon.exposure import apply_exposure
 from endogsim.scene.folder import SimScene
 
 __all__ = ["Rendered", "simulate_materials", "same_materials", "Simulations", "frame_gaussians", "frame_opacities",
-           "in_view", "render_sequence"]
+           "in_view", "as_filmed", "render_sequence"]
 
 
 @dataclass
@@ -35,7 +39,8 @@ class Rendered:
     """Renders of a simulated sequence at some of its frames.
 
     Attributes:
-        rgb: [K, H, W, 3] in [0, 1], the frames ``frames`` (frame 0 is the rest state).
+        rgb: [K, H, W, 3] in [0, 1], the frames ``frames`` (frame 0 is the rest state), as filmed
+            (:func:`as_filmed`: the frame's exposure, black outside the field of view).
         flow: [K', H, W, 2] Gaussian flow t -> t+1 (pixels of the rendered resolution) for the rendered
             frames t with t + 1 < T (K' = K, or K - 1 when the last frame is rendered).
         alpha: [K, H, W] accumulated opacity.
@@ -122,6 +127,19 @@ def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t
     return world_to_camera(means, covs, problem.viewmats[t].to(means))
 
 
+def as_filmed(problem: SimScene, rgb: torch.Tensor, t: int) -> torch.Tensor:
+    """``rgb`` [H, W, 3], a render of frame ``t``, as the endoscope filmed it: mapped by that frame's exposure
+    and black outside the field of view (resized to the render's size, nearest; unchanged without either)."""
+    if problem.exposure is not None:
+        log_gain, bias = problem.exposure[t].to(rgb)
+        rgb = apply_exposure(rgb, log_gain, bias)
+    if problem.field_of_view is not None:
+        fov = problem.field_of_view[None, None].to(rgb)
+        fov = torch.nn.functional.interpolate(fov, size=tuple(rgb.shape[:2]), mode="nearest")[0, 0]
+        rgb = rgb * fov[..., None]
+    return rgb
+
+
 def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
                     backend: str = "auto", frames: Sequence[int] | None = None) -> Rendered:
     """Render frames of a simulation and the Gaussian flow from each to the next.
@@ -153,7 +171,7 @@ def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
             flows.append(r.flow)
         else:
             r = rasterize(m, opac_t, colors, view, covars=c, backend=backend)
-        rgbs.append(r.rgb)
+        rgbs.append(as_filmed(problem, r.rgb, t))
         alphas.append(r.alpha)
         if problem.tracks is not None:
             tracks.append(view.project(m[problem.tracks.index]))

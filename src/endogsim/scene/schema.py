@@ -198,13 +198,17 @@ class ScenarioSpec:
 class CameraSpec:
     """Pinhole camera: K [3][3] pixels, image size, world->camera ``viewmat`` [4][4] of frame 0 (the world is
     frame 0's camera frame: identity), and for a moving endoscope ``viewmats`` [T][4][4], the world->camera
-    transform of every frame (None: the camera is still)."""
+    transform of every frame (None: the camera is still), and ``exposure``, how each frame's camera exposed
+    the Gaussians' colours (a moving endoscope's light and auto-exposure, learnt by the reconstruction:
+    :mod:`endogsim.recon.exposure`): {"log_gain": [T][3], "bias": [T][3]}, rgb_t = rgb * exp(log_gain_t) +
+    bias_t (None: every frame as frame 0)."""
 
     K: list[list[float]]
     width: int
     height: int
     viewmat: list[list[float]]
     viewmats: list[list[list[float]]] | None = None
+    exposure: dict[str, list[list[float]]] | None = None
 
 
 @dataclass
@@ -386,6 +390,12 @@ def _check_geometry(spec: SceneSpec, path: Path) -> None:
     if cam.viewmats is not None:
         frames = len(cam.viewmats) if isinstance(cam.viewmats, list) else 0
         _numbers(cam.viewmats, (frames, 4, 4), "camera.viewmats", path)
+    if cam.exposure is not None:
+        if not isinstance(cam.exposure, dict) or set(cam.exposure) != {"log_gain", "bias"}:
+            raise DataError(f"{path}: camera.exposure = {cam.exposure!r:.80} must be an object with 'log_gain' "
+                            "and 'bias'")
+        for key in ("log_gain", "bias"):
+            _numbers(cam.exposure[key], (spec.frames, 3), f"camera.exposure.{key}", path)
 
 
 def _check_files(spec: SceneSpec, path: Path) -> None:
