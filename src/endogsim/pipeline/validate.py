@@ -10,7 +10,9 @@ captures: on frames it never saw. The run folder ``OUT``:
   OUT/report.html            the calibration's report with the held-out section
 
 Every method renders the held-out frames t >= T_train (and the flow pairs t -> t+1 for t >= T_train - 1,
-the first of which reaches into the held-out frames) with the same Gaussians, renderer and cameras:
+the first of which reaches into the held-out frames) with the same Gaussians, renderer and cameras, each
+frame exposed and cropped to the field of view as the endoscope filmed it (a moving endoscope's
+reconstruction learns both; :func:`~endogsim.scene.forward.as_filmed`):
 
   prediction      the scene simulated over the whole clip with the calibrated materials (the tracked
                   instrument motion drives it); over the training frames it is the calibration's own rollout,
@@ -143,14 +145,16 @@ def compare_to(prediction: tuple[np.ndarray, np.ndarray], baseline: tuple[np.nda
     return out
 
 
-def _reconstruction_renders(recon_dir: Path, camera, frames: list[int], T: int) -> tuple[np.ndarray, np.ndarray]:
+def _reconstruction_renders(recon_dir: Path, scene, camera, frames: list[int], T: int) -> tuple[np.ndarray, np.ndarray]:
     """The reconstruction's renders of ``frames`` and its Gaussian flow t -> t+1 (t + 1 < T), seen by each
-    frame's camera (``camera``: the evaluation intrinsics)."""
+    frame's camera (``camera``: the evaluation intrinsics) and filmed as the simulations are (``scene``'s
+    exposure and field of view, :func:`~endogsim.scene.forward.as_filmed`)."""
     from endogsim.gaussians.camera import Camera
     from endogsim.gaussians.flow import render_with_flow
     from endogsim.gaussians.rasterize_torch import world_to_camera
     from endogsim.gaussians.render import rasterize
     from endogsim.recon.model import load_reconstruction
+    from endogsim.scene.forward import as_filmed, in_field_of_view
 
     rec = load_reconstruction(recon_dir)
     view = Camera(camera.K, camera.width, camera.height)
@@ -167,10 +171,10 @@ def _reconstruction_renders(recon_dir: Path, camera, frames: list[int], T: int) 
             if t + 1 < T:
                 _, mn, cn = state(t + 1)
                 r = render_with_flow(m, g.opacities, colors, view, mn, covars=c, covars_next=cn)
-                flows.append(r.flow.numpy())
+                flows.append(in_field_of_view(scene, r.flow).numpy())
             else:
                 r = rasterize(m, g.opacities, colors, view, covars=c)
-            rgbs.append(r.rgb.clamp(0, 1).numpy())
+            rgbs.append(as_filmed(scene, r.rgb, t).clamp(0, 1).numpy())
     return np.stack(rgbs), np.stack(flows) if flows else np.zeros((0, view.height, view.width, 2), np.float32)
 
 
@@ -276,7 +280,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
             held[1][T_train - 1:] = res.F[T_train - 1]
             r = render_sequence(scene, held[0], held[1], cam, frames=shown)
             renders["zero_motion"] = (r.rgb.numpy(), r.flow.numpy())
-        renders["reconstruction"] = _reconstruction_renders(recon_dir, cam, shown, T)
+        renders["reconstruction"] = _reconstruction_renders(recon_dir, scene, cam, shown, T)
 
         vdir = out / "validate"
         vdir.mkdir(parents=True, exist_ok=True)

@@ -7,9 +7,10 @@
 A moving endoscope (``SimScene.viewmats``) is handled by rendering frame t in camera t's coordinates: the
 flow t -> t+1 then compares camera t's view of frame t with camera t+1's view of frame t+1, which is what an
 optical-flow estimator measures on the video.
-Each frame's colours are then mapped by that frame's exposure and blacked out beyond the endoscope's
-field of view, where the reconstruction learnt them (``SimScene.exposure``, ``SimScene.field_of_view``), so
-that a simulated frame differs from the filmed one by the motion, not by the camera's light.
+Each frame's colours are then mapped by that frame's exposure and blacked out (and the flow set to 0) beyond
+the endoscope's field of view, where the reconstruction learnt them (``SimScene.exposure``,
+``SimScene.field_of_view``), so that a simulated frame differs from the filmed one by the motion, not by the
+camera's light.
 
 Every step is differentiable, so a loss on the renders back-propagates to E and nu (and through them to
 the optimiser's log10 E and raw nu).
@@ -31,7 +32,7 @@ from endogsim.recon.exposure import apply_exposure
 from endogsim.scene.folder import SimScene
 
 __all__ = ["Rendered", "simulate_materials", "same_materials", "Simulations", "frame_gaussians", "frame_opacities",
-           "in_view", "as_filmed", "render_sequence"]
+           "in_view", "in_field_of_view", "as_filmed", "render_sequence"]
 
 
 @dataclass
@@ -42,7 +43,8 @@ class Rendered:
         rgb: [K, H, W, 3] in [0, 1], the frames ``frames`` (frame 0 is the rest state), as filmed
             (:func:`as_filmed`: the frame's exposure, black outside the field of view).
         flow: [K', H, W, 2] Gaussian flow t -> t+1 (pixels of the rendered resolution) for the rendered
-            frames t with t + 1 < T (K' = K, or K - 1 when the last frame is rendered).
+            frames t with t + 1 < T (K' = K, or K - 1 when the last frame is rendered); 0 outside the field of
+            view.
         alpha: [K, H, W] accumulated opacity.
         frames: the frame indices rendered (ascending).
         tracks: [K, N, 2] pixel positions (rendered resolution) of the scene's tracked Gaussians
@@ -127,17 +129,22 @@ def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t
     return world_to_camera(means, covs, problem.viewmats[t].to(means))
 
 
+def in_field_of_view(problem: SimScene, image: torch.Tensor) -> torch.Tensor:
+    """``image`` [H, W, C] zeroed outside the endoscope's field of view (``problem.field_of_view`` resized to the
+    image's size, nearest: a scaled camera sees the same circle); unchanged without one."""
+    if problem.field_of_view is None:
+        return image
+    fov = problem.field_of_view[None, None].to(image)
+    return image * torch.nn.functional.interpolate(fov, size=tuple(image.shape[:2]), mode="nearest")[0, 0, ..., None]
+
+
 def as_filmed(problem: SimScene, rgb: torch.Tensor, t: int) -> torch.Tensor:
     """``rgb`` [H, W, 3], a render of frame ``t``, as the endoscope filmed it: mapped by that frame's exposure
-    and black outside the field of view (resized to the render's size, nearest; unchanged without either)."""
+    (``problem.exposure``) and black outside the field of view (:func:`in_field_of_view`)."""
     if problem.exposure is not None:
         log_gain, bias = problem.exposure[t].to(rgb)
         rgb = apply_exposure(rgb, log_gain, bias)
-    if problem.field_of_view is not None:
-        fov = problem.field_of_view[None, None].to(rgb)
-        fov = torch.nn.functional.interpolate(fov, size=tuple(rgb.shape[:2]), mode="nearest")[0, 0]
-        rgb = rgb * fov[..., None]
-    return rgb
+    return in_field_of_view(problem, rgb)
 
 
 def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, camera: Camera,
@@ -168,7 +175,7 @@ def render_sequence(problem: SimScene, positions: torch.Tensor, F: torch.Tensor,
         if t + 1 < T:
             r = render_with_flow(m, opac_t, colors, view, states[t + 1][0], covars=c, covars_next=states[t + 1][1],
                                  backend=backend)
-            flows.append(r.flow)
+            flows.append(in_field_of_view(problem, r.flow))  # nothing is filmed, so nothing moves, beyond it
         else:
             r = rasterize(m, opac_t, colors, view, covars=c, backend=backend)
         rgbs.append(as_filmed(problem, r.rgb, t))
