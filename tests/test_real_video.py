@@ -271,6 +271,28 @@ def test_simulated_frames_are_exposed_and_cropped_as_the_endoscope_filmed_them(t
     assert pos.grad is not None and float(pos.grad.abs().sum()) > 0
 
 
+def test_the_flow_error_shown_is_zero_where_the_endoscope_films_nothing(tiny_scene):
+    """The flow-error panel (comparison video, held-out stills) is |simulated - observed| inside the endoscope's
+    circle and 0 beyond it, where an observed flow estimate bleeds into the black border and nothing is scored;
+    a scene without a field of view shows the error everywhere."""
+    from endogsim.identify.report import flow_error_map
+
+    p = tiny_scene
+    H, W = p.camera.height // 2, p.camera.width // 2  # the panel's scale need not be the field of view's
+    yy, xx = torch.meshgrid(torch.arange(p.camera.height), torch.arange(p.camera.width), indexing="ij")
+    fov = (yy - p.camera.height / 2) ** 2 + (xx - p.camera.width / 2) ** 2 < (0.45 * p.camera.height) ** 2
+    rng = np.random.default_rng(0)
+    flow = rng.normal(size=(3, H, W, 2)).astype(np.float32)
+    seen = rng.normal(size=(3, H, W, 2)).astype(np.float32)
+    everywhere = np.linalg.norm(flow - seen, axis=-1)
+    np.testing.assert_allclose(flow_error_map(p, flow, seen), everywhere, rtol=1e-6)
+    np.testing.assert_allclose(flow_error_map(p, flow, None), np.linalg.norm(flow, axis=-1), rtol=1e-6)
+    small = fov[::2, ::2].numpy()
+    cut = flow_error_map(replace(p, field_of_view=fov), flow, seen)
+    np.testing.assert_allclose(cut[:, small], everywhere[:, small], rtol=1e-6)
+    assert float(np.abs(cut[:, ~small]).max()) == 0.0 and float(everywhere[:, ~small].min()) > 0.0
+
+
 def test_an_instrument_the_video_does_not_show_is_not_drawn(tiny_scene):
     from endogsim.scene.forward import render_sequence
 

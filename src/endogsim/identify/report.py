@@ -40,7 +40,7 @@ from endogsim.materials.field import MaterialField
 from endogsim.physics import SETTLING_TOLERANCE
 from endogsim.scene.coverage import Coverage, check_coverage, tissue_coverage
 from endogsim.scene.folder import SimScene
-from endogsim.scene.forward import Simulations, render_sequence
+from endogsim.scene.forward import Simulations, in_field_of_view, render_sequence
 
 __all__ = ["Evaluation", "evaluate_field", "reference_observed_flow", "material_errors", "settling_record",
            "write_outputs"]
@@ -104,8 +104,16 @@ def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndar
     else:
         ref, src, valid = None, "none", None
     e = math.nan if ref is None else epe_metric(flow, ref, valid)
-    err = np.linalg.norm(flow - (np.zeros_like(flow) if ref is None else ref), axis=-1)
+    err = flow_error_map(problem, flow, ref)
     return Evaluation(rgb, flow, float(e), float(p), float(s), err, cov, src, res.settling_left)
+
+
+def flow_error_map(problem: SimScene, flow: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+    """|``flow`` - ``reference``| [T-1, H, W] (px; against zero without a reference) where the camera films:
+    0 outside the endoscope's field of view, where the observed flow's estimate bleeds into the black border
+    and no score counts it (EPE is over tissue pixels)."""
+    err = np.linalg.norm(flow - (np.zeros_like(flow) if reference is None else reference), axis=-1)
+    return in_field_of_view(problem, torch.from_numpy(err)[..., None])[..., 0].numpy()
 
 
 def settling_record(problem: SimScene, settling_left: float) -> dict:

@@ -219,7 +219,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.evaluate.report_html import write_report
     from endogsim.identify import run_identify
     from endogsim.identify.loss import make_observations, observed_flow
-    from endogsim.identify.report import comparison_frames
+    from endogsim.identify.report import comparison_frames, flow_error_map
     from endogsim.io.runfolder import run_folder
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import run_pipeline
@@ -299,7 +299,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         import imageio.v3 as iio
 
         rgb, flow = renders["prediction"]
-        err = np.linalg.norm(flow - obs.flow[pairs].numpy(), axis=-1)
+        err = flow_error_map(scene, flow, obs.flow[pairs].numpy())
         panels = comparison_frames(obs.frames[shown].numpy(), np.clip(rgb, 0, 1), err)
         for t in sorted({test[0], test[len(test) // 2], test[-1]}):
             iio.imwrite(vdir / f"heldout_{t:04d}.png", (panels[shown.index(t)] * 255 + 0.5).astype(np.uint8))

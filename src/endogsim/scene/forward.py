@@ -130,12 +130,13 @@ def in_view(problem: SimScene, means: torch.Tensor, covs: torch.Tensor | None, t
 
 
 def in_field_of_view(problem: SimScene, image: torch.Tensor) -> torch.Tensor:
-    """``image`` [H, W, C] zeroed outside the endoscope's field of view (``problem.field_of_view`` resized to the
-    image's size, nearest: a scaled camera sees the same circle); unchanged without one."""
+    """``image`` [..., H, W, C] zeroed outside the endoscope's field of view (``problem.field_of_view`` resized to
+    the image's size, nearest: a scaled camera sees the same circle); unchanged without one."""
     if problem.field_of_view is None:
         return image
     fov = problem.field_of_view[None, None].to(image)
-    return image * torch.nn.functional.interpolate(fov, size=tuple(image.shape[:2]), mode="nearest")[0, 0, ..., None]
+    size = tuple(image.shape[-3:-1])
+    return image * torch.nn.functional.interpolate(fov, size=size, mode="nearest")[0, 0, ..., None]
 
 
 def as_filmed(problem: SimScene, rgb: torch.Tensor, t: int) -> torch.Tensor:
