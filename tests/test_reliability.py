@@ -71,6 +71,24 @@ def scene_copy(src: Path, dst: Path, edit=None) -> Path:
     return dst
 
 
+def test_the_command_lists_read_as_sentences():
+    """Every command's description in ``endogsim --help`` (and its groups') is its docstring with the source's line
+    breaks joined: Typer printed them as they were, breaking each description mid-sentence."""
+    for group in ((), ("bench",), ("materials",)):
+        out = cli(*group, "--help").output
+        assert "Commands" in out, out
+        panel = out[out.index("╭─ Commands"):].splitlines()
+        width = len(panel[0]) - 2
+        rows = [ln.strip("│").rstrip() for ln in panel[1:] if ln.startswith("│")]
+        for row, following in zip(rows, rows[1:]):
+            if following.startswith("   "):  # no command name: a continuation line
+                # ``row`` goes on in ``following``: it was wrapped at the panel's edge, not at a source line.
+                assert len(row) > width - 25, out
+    from endogsim.cli.main import app
+
+    assert all("\n" not in c.help for c in app.registered_commands if c.help)
+
+
 # ------------------------------------------------------------------------------------------------------ JSON, folders
 def test_json_files_never_hold_nan_or_infinity(tmp_path):
     p = write_json_atomic(tmp_path / "m.json", {"epe": math.nan, "psnr": 30.0, "grad": [1.0, -math.inf],

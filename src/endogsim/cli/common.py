@@ -77,6 +77,17 @@ def show_warnings_as_lines() -> None:
     warnings.showwarning = show
 
 
+def unwrap_help(app: typer.Typer) -> None:
+    """Give each of ``app``'s commands its docstring as help with the source's line breaks joined (paragraphs
+    kept): Typer's command list prints a docstring's line breaks as they are, which broke every description in
+    ``endogsim --help`` at the docstring's 120-column source lines."""
+    import inspect
+
+    for command in app.registered_commands:
+        doc = command.help or inspect.getdoc(command.callback) or ""
+        command.help = "\n\n".join(" ".join(p.split()) for p in doc.split("\n\n")) or None
+
+
 def progress() -> Progress:
     """A rich progress bar with count, elapsed and remaining time (quiet when not a terminal)."""
     return Progress(

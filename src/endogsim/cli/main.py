@@ -44,6 +44,8 @@ def _register() -> None:
         module.register(app)
     materials.register(materials_app)
     bench.register(bench_app)
+    for commands in (app, bench_app, materials_app):
+        common.unwrap_help(commands)
 
 
 _register()
