@@ -71,6 +71,20 @@ def scene_copy(src: Path, dst: Path, edit=None) -> Path:
     return dst
 
 
+def test_version_is_printed_by_both_entry_points():
+    """``endogsim --version`` printed "Missing command." (exit 2) before its option was eager; ``python -m
+    endogsim`` is the same command line."""
+    import subprocess
+    import sys
+
+    from endogsim import __version__
+
+    result = cli("--version")
+    assert result.exit_code == 0 and result.output.strip() == __version__, result.output
+    run = subprocess.run([sys.executable, "-m", "endogsim", "--version"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == __version__, run.stderr
+
+
 def test_the_command_lists_read_as_sentences():
     """Every command's description in ``endogsim --help`` (and its groups') is its docstring with the source's line
     breaks joined: Typer printed them as they were, breaking each description mid-sentence."""

@@ -132,7 +132,3 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
-
-
-def run_cli(app: typer.Typer) -> None:
-    app()

@@ -18,13 +18,20 @@ materials_app = typer.Typer(help="Material field: initialise, show.", no_args_is
 app.add_typer(materials_app, name="materials")
 
 
-@app.callback()
-def _main(version: bool = typer.Option(False, "--version", help="Print the version and exit.")) -> None:
-    if version:
+def _print_version(value: bool) -> None:
+    if value:
         from endogsim import __version__
 
         typer.echo(__version__)
         raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    # Eager: the version is printed before the group asks for a command (without it, `endogsim --version`
+    # ended in "Missing command.").
+    pass
 
 
 def _register() -> None:
@@ -50,7 +57,3 @@ def _register() -> None:
 
 _register()
 common.show_warnings_as_lines()
-
-
-def main() -> None:  # pragma: no cover - console entry point wrapper
-    common.run_cli(app)
