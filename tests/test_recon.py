@@ -835,6 +835,14 @@ def test_field_of_view_is_what_every_training_frame_labels_background():
     assert not fov[0, 4]
     assert field_of_view(ids, [], [0, 1]) is None  # no background label: the whole image
     assert field_of_view(ids[:, :, 1:4], [50], [0, 1, 2]) is None  # no border: the whole image
+    # CholecSeg8K leaves the top row unlabelled (-1), the black corners too: beside the border it is outside;
+    # an unlabelled line between organs farther inside stays in view, even where no frame labels it.
+    ids = np.full((2, 6, 9), 21, np.int32)
+    ids[:, :, :2] = 50
+    ids[:, 0, :] = -1
+    ids[:, 1:, 5] = -1
+    fov = field_of_view(ids, [50], [0, 1])
+    assert not fov[:, :2].any() and not fov[0, :4].any() and fov[1:, 2:].all() and fov[0, 4:].all()
 
 
 @pytest.mark.filterwarnings("ignore:instrument 31. its Gaussians measure a radius")  # the scene's collider fit

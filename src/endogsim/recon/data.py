@@ -138,11 +138,21 @@ class PreparedScene:
         return sorted(i for i, lab in self.scene.labels.items() if not lab.is_tool and lab.klass != "background")
 
 
+#: How far (pixels) from the pixels labelled background in every frame an always-unlabelled pixel still counts as
+#: outside the field of view (:func:`field_of_view`).
+UNLABELLED_EDGE_PX = 2
+
+
 def field_of_view(object_masks: np.ndarray, background_ids: list[int], frames_used: list[int]) -> np.ndarray | None:
     """[H, W] bool: pixels inside the endoscope's field of view, or None when it fills the image.
 
     The lens of an endoscope images a fixed circle (CholecSeg8K labels the black around it
-    ``background``); a pixel is outside when it is background in every frame of ``frames_used``.
+    ``background``); a pixel is outside when it is background in every frame of ``frames_used``, or
+    unlabelled (id < 0) or background in every frame and within ``UNLABELLED_EDGE_PX`` of such a pixel:
+    CholecSeg8K leaves the image's top row unlabelled across its whole width, the black corners included,
+    and those were taken for filmed pixels (a coloured line above the circle in every simulated frame and
+    flow-error panel). Unlabelled pixels farther inside stay in view: the watershed masks' boundary lines
+    between organs are unlabelled too, and on a still camera the same ones in every frame.
 
     Args:
         object_masks: [T, H, W] int object ids.
@@ -151,8 +161,16 @@ def field_of_view(object_masks: np.ndarray, background_ids: list[int], frames_us
     """
     if not background_ids or not frames_used:
         return None
-    outside = np.isin(object_masks[frames_used], background_ids).all(0)
-    return ~outside if outside.any() else None
+    from scipy.ndimage import binary_dilation
+
+    masks = object_masks[frames_used]
+    background = np.isin(masks, background_ids)
+    outside = background.all(0)
+    if not outside.any():
+        return None
+    never_filmed = (background | (masks < 0)).all(0)
+    near = binary_dilation(outside, structure=np.ones((3, 3), bool), iterations=UNLABELLED_EDGE_PX)
+    return ~(outside | (never_filmed & near))
 
 
 def wants_tool_instances(mode: str, seg_source: str, data_format: str) -> bool:
