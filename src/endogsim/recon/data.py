@@ -15,7 +15,8 @@ frames), so every later stage (tool motion, trajectories, objects) sees one rigi
 ``ReconConfig.tool_instances`` switches it (:func:`wants_tool_instances`).
 
 The endoscope's field of view (:func:`field_of_view`): pixels labelled background in every training frame
-lie outside the lens's image circle; renders are black there, as the camera's pictures are.
+lie outside the lens's image circle, and so do never-labelled pixels right beside them (CholecSeg8K's
+unlabelled top row); renders are black there, as the camera's pictures are.
 
 Scene folders written by ``endogsim synth`` are read with their own object ids and names (the
 ``endogsim_scene`` format of :mod:`endogsim.io.formats`), so reconstructed object ids match the generator's.
