@@ -32,6 +32,8 @@ def _obj(E: float, nu: float, E_true: float = 1e3, nu_true: float = 0.4, E_iv=No
 def _fake(scene: str, re: float, epe: float, with_global: bool = False, fid=None, objects=None) -> dict:
     runs = {f"{i}_{'on' if on else 'off'}": {"re_mean": re * (0.5 if on else 1), "epe": epe, "fid": fid,
                                              "seconds_per_iteration": 2.0 if on else None,
+                                             "iterations": 10 if on else 0, "stopped": "iters" if on else "no_iterations",
+                                             "stopped_by_budget": False, "wall_seconds": 30.0 if on else 3.0,
                                              "materials": {"a": _obj(1e3, 0.4)}} for i, on in RUNS}
     if objects is not None:
         runs["prior_on"]["materials"] = objects
@@ -57,6 +59,8 @@ def test_tables_average_over_scenes():
     assert rows2[0][4:6] == [1.0, 0.0] and rows2[1][4:6] == [0.5, 0.5]
     assert rows2[-1][4] == pytest.approx(2 / 3) and rows2[-1][5] == pytest.approx(1 / 3)
     assert rows2[1][6] == "1/2, 0/2" and rows2[-1][6] == "2/3, 1/3" and rows2[-1][7] == pytest.approx(2.0)
+    assert rows2[0][8] == "10 (iters)" and rows2[-1][9] == pytest.approx(30.0)
+    assert "no run was cut by a time budget" in t["table2"]["note"]
     objs = t["table2_objects"]["rows"]
     assert [(r[0], r[1]) for r in objs] == [("press", "liver"), ("two_tissues", "liver"),
                                             ("two_tissues", "gallbladder")]
@@ -77,6 +81,13 @@ def test_tables_average_over_scenes():
     assert t["table3"]["rows"][0][4] == pytest.approx(12.0) and "not run" in t["ablation"]["note"]
     # no intervals measured (optimisation off): nothing is claimed about coverage or identifiability
     assert math.isnan(t["table2"]["rows"][0][4]) and t["table2"]["rows"][0][6] == "-, -"
+    cut = _fake("press", 0.2, 1.0)
+    cut["runs"]["prior_on"].update(stopped="time_budget", stopped_by_budget=True)
+    only_full = {"prior_on": cut["runs"]["prior_on"]}  # --runs prior_on: Table 3 has its row only
+    t = suite_tables({"press": {"scene": "press", "runs": only_full}})
+    assert "cut by the time budget: press (prior_on)" in t["table2"]["note"]
+    assert [r[:2] for r in t["table3"]["rows"]] == [["prior", "on"]]
+    assert t["table2"]["rows"][0][8] == "10 (time_budget)"
 
 
 def test_the_statistical_interval_is_the_interval_where_no_discretisation_error_widened_it():
@@ -98,6 +109,10 @@ def test_the_statistical_interval_is_the_interval_where_no_discretisation_error_
 def test_clear_errors(tmp_path, monkeypatch):
     with pytest.raises(EndoGSimError, match="unknown suite scene.*nowhere"):
         run_suite(["nowhere"], tmp_path, tmp_path)
+    with pytest.raises(EndoGSimError, match="choose among .*with prior_on"):
+        run_suite(["tiny"], tmp_path, tmp_path, runs=["manual_on"])
+    with pytest.raises(EndoGSimError, match="runs prior_on, prior_of: choose among"):
+        run_suite(["tiny"], tmp_path, tmp_path, runs=["prior_on", "prior_of"])
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     with pytest.raises(EndoGSimError, match=r"pip install 'endogsim\[ray\]'"):
         run_suite(["tiny"], tmp_path / "s", tmp_path / "w", ray=True, **SMALL)
@@ -144,6 +159,23 @@ def test_suite_in_process_on_tiny(scenes_dir, tmp_path):
     _check(res)
     assert (scenes_dir / "tiny_f3" / "scene.json").is_file()  # cached for the next call
     assert (tmp_path / "runs" / "tiny" / "prior_on" / "metrics.json").is_file()
+
+
+def test_the_suite_runs_what_it_is_asked_and_no_clock_cuts_it(scenes_dir, tmp_path):
+    """``--runs prior_on`` does the full method alone; by default no time budget reaches identification (the
+    figures must not follow the machine's speed), and ``--time-budget`` does reach it."""
+    res = run_suite(["tiny"], scenes_dir, tmp_path / "a", runs=["prior_on"], **SMALL, log=lambda *a: None)
+    assert set(res["scenes"]["tiny"]["runs"]) == {"prior_on"} and len(res["tables"]["table3"]["rows"]) == 1
+    assert res["settings"]["runs"] == ["prior_on"] and res["settings"]["time_budget"] is None
+    config = json.loads((tmp_path / "a" / "tiny" / "prior_on" / "metrics.json").read_text())["config"]
+    assert config["time_budget"] is None and config["iters"] == SMALL["iters"]
+    run = res["scenes"]["tiny"]["runs"]["prior_on"]
+    assert run["stopped_by_budget"] is False and run["wall_seconds"] >= run["seconds"] > 0
+    res = run_suite(["tiny"], scenes_dir, tmp_path / "b", runs=["prior_off", "prior_on"], time_budget=1e-6,
+                    **SMALL, log=lambda *a: None)
+    config = json.loads((tmp_path / "b" / "tiny" / "prior_on" / "metrics.json").read_text())["config"]
+    assert config["time_budget"] == 1e-6 and set(res["scenes"]["tiny"]["runs"]) == {"prior_off", "prior_on"}
+    assert [r[:2] for r in res["tables"]["table3"]["rows"]] == [["prior", "off"], ["prior", "on"]]
 
 
 def test_suite_on_a_local_ray_cluster(scenes_dir, tmp_path):

@@ -74,7 +74,7 @@ def run_bench(scenes_dir: Path, work_dir: Path, quick: bool = False, iters: int 
     main_scenes = scenes or (["tiny"] if quick else list(ALL_SCENES))
     abl_scene = scenes[0] if scenes else ("tiny" if quick else "press")
     field_frames, field_scale = (12, 0.5) if quick else (None, None)  # two_tissues for table 2
-    base = dict(iters=n_it, frames=frames)
+    base = dict(iters=n_it, frames=frames, time_budget=None)  # no stop: figures independent of the machine's speed
     out: dict = {"tables": {}, "runs": {}, "settings": {"quick": quick, "iters": n_it, "frames": frames,
                                                           "config": IdentifyConfig(**base).to_json()}}
 

@@ -10,9 +10,9 @@ The tables:
 
   Table 2  per scene (prior initialisation, optimisation on: the full method): RE, EPE, |E/E_true - 1|
            (median over the scene's objects), the share of the scene's objects whose true E and true nu lie
-           in their 90% interval, how many are identifiable, and seconds per iteration; the last row is the
-           suite (RE, EPE and seconds per iteration averaged over the scenes as in the paper; the others over
-           every deformable object of the suite)
+           in their 90% interval, how many are identifiable, seconds per iteration, the iterations run (and
+           what stopped them) and the seconds of the whole identification; the last row is the suite (RE, EPE
+           and seconds averaged over the scenes as in the paper; the others over every deformable object)
   Table 2, per object: identified and true E and nu, |E/E_true - 1|, the 90% intervals, their widths and
            the identifiable flags; its note gives the suite's interval coverage (E, nu and both pooled) and
            mean widths (decades of E)
@@ -21,8 +21,16 @@ The tables:
   Ablation object-wise material field vs one global material on ``two_tissues``
 
 RE = mean relative error of E, nu, G, K against the ground truth; EPE in pixels against the ground-truth
-flow. ``--ray`` runs :func:`run_scene` for the scenes in parallel as Ray tasks (one CPU each), on a local
-cluster started for the run or on ``--ray-address ADDRESS``; without it they run one after the other here.
+flow.
+
+The figures do not depend on the machine's speed: every optimised run does its :data:`DEFAULT_ITERS`
+iterations (or ``--iters``) unless the loss's own rules end it sooner, and no time budget cuts it
+(identification's own default, a 480-s safety stop, let a 2-core CPU's load decide how many iterations a
+scene got; docs/IDENTIFICATION.md section 4). ``--time-budget`` puts a stop back; Table 2 then names the
+runs it cut. ``--runs`` measures a subset of the runs (the full method alone: ``--runs prior_on``).
+
+``--ray`` runs :func:`run_scene` for the scenes in parallel as Ray tasks (one CPU each), on a local cluster
+started for the run or on ``--ray-address ADDRESS``; without it they run one after the other here.
 """
 
 from __future__ import annotations
@@ -31,14 +39,22 @@ import math
 import os
 import time
 from pathlib import Path
+from typing import Sequence
 
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.errors import EndoGSimError
 
-__all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects"]
+__all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects",
+           "DEFAULT_ITERS", "RUN_KEYS"]
 
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
+#: Every run key :func:`run_scene` knows: the four of :data:`RUNS` and the global-material ablation.
+RUN_KEYS = tuple(f"{init}_{'on' if on else 'off'}" for init, on in RUNS) + ("global_on",)
+FULL_METHOD = "prior_on"
+#: Iterations of an optimised run. With no time budget (module docstring) a scene's full method then takes
+#: 5-12 minutes on a 2-core CPU (docs/IDENTIFICATION.md section 4 has each scene's seconds per iteration).
+DEFAULT_ITERS = 10
 
 
 def _default_scenes() -> list[str]:
@@ -47,9 +63,10 @@ def _default_scenes() -> list[str]:
     return [n for n in suite_scene_names() if n != "tiny"]
 
 
-def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = 30,
+def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = DEFAULT_ITERS,
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
-              fid_weights: str | None = None, threads: int | None = None) -> dict:
+              fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
+              time_budget: float | None = None) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
 
     Args:
@@ -62,10 +79,14 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         global_ablation: add the global-material run (default: only on ``two_tissues``).
         fid_weights: local Inception weights; FID of every run's simulated vs observed frames.
         threads: torch threads in this process (Ray tasks use 1 so parallel scenes do not oversubscribe).
+        runs: the run keys to do (of :data:`RUN_KEYS`; default all, ``global_on`` only where the ablation
+            runs).
+        time_budget: identification's safety stop in seconds (None: none; the module docstring says why).
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
-        psnr, ssim, fid, seconds, iterations, seconds_per_iteration, stopped, materials}}, "wall_seconds"};
-        ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
+        psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
+        wall_seconds (the whole identification: optimisation, intervals and evaluation), materials}},
+        "wall_seconds"}; ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
     """
     import torch
 
@@ -87,20 +108,24 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     plan = [(f"{init}_{'on' if on else 'off'}", init, on, False) for init, on in RUNS]
     if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
         plan.append(("global_on", "prior", True, True))
+    plan = [p for p in plan if runs is None or p[0] in runs]
     truth = {o.name: (o.E, o.nu) for o in problem.spec.objects if not o.rigid and o.has_material}
-    runs = {}
+    done = {}
     for key, init, on, glob in plan:
         cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
-                             intervals=key == "prior_on")
+                             intervals=key == FULL_METHOD, time_budget=time_budget)
+        t_run = time.perf_counter()
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
                                                "epe", "psnr", "ssim", "seconds", "iterations")}
         rec["seconds_per_iteration"] = m["seconds"] / m["iterations"] if m.get("iterations") else None
         rec["stopped"] = m.get("stopped")
+        rec["stopped_by_budget"] = m.get("stopped") == "time_budget"
+        rec["wall_seconds"] = time.perf_counter() - t_run
         rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
-        runs[key] = rec
-    return {"scene": name, "folder": str(folder), "runs": runs, "wall_seconds": time.perf_counter() - t0}
+        done[key] = rec
+    return {"scene": name, "folder": str(folder), "runs": done, "wall_seconds": time.perf_counter() - t0}
 
 
 def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict[str, dict]:
@@ -215,17 +240,20 @@ def _ray_map(kwargs_list: list[dict], address: str | None, log) -> list[dict]:
 def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = SCENES_CACHE,
               work_dir: str | os.PathLike = "bench_suite_runs", iters: int | None = None, quick: bool = False,
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
-              ray_address: str | None = None, threads: int | None = None, log=print) -> dict:
+              ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
+              time_budget: float | None = None, log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
         scenes: suite scenes (default: every suite scene except ``tiny``; ``--quick``: ``tiny``).
-        iters: iterations of the optimised runs (default 30; quick 2).
+        iters: iterations of the optimised runs (default :data:`DEFAULT_ITERS`; quick 2).
         quick: ``tiny``, 4 frames, 2 iterations: a smoke run of the whole machinery (minutes on a CPU).
         frames: frames to synthesize per scene (default: the suite's; quick 4).
         ray, ray_address: run the scenes as Ray tasks (local cluster unless an address is given).
         threads: torch threads of the in-process path (Ray tasks always use 1). On a CPU shared with other
             work, 1 can be several times faster than torch's default pool.
+        runs: run keys to do (of :data:`RUN_KEYS`, with ``prior_on``: Table 2 is its; default all).
+        time_budget: each identification's safety stop in seconds (default None: none).
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
@@ -237,10 +265,17 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     unknown = [s for s in scenes if s not in suite_scene_names()]
     if unknown:
         raise EndoGSimError(f"unknown suite scene(s) {', '.join(unknown)}; choose from {', '.join(suite_scene_names())}")
-    n_it = iters if iters is not None else (2 if quick else 30)
+    if runs is not None:
+        runs = list(runs)
+        wrong = [r for r in runs if r not in RUN_KEYS]
+        if wrong or FULL_METHOD not in runs:
+            raise EndoGSimError(f"runs {', '.join(runs)}: choose among {', '.join(RUN_KEYS)}, with {FULL_METHOD} "
+                                "(the full method, whose run every table starts from)")
+    n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
-               fid_weights=str(fid_weights) if fid_weights else None) for s in scenes]
+               fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget)
+          for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
 
@@ -256,7 +291,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     for r in results:
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
-                         "ray_address": ray_address, "fid": bool(fid_weights)},
+                         "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
+                         "time_budget": time_budget},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 
@@ -293,13 +329,14 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
     """Table 2, its per-object intervals, Table 3 and the material-field ablation from :func:`run_scene`
     results."""
     names = list(per_scene)
-    full = {n: per_scene[n]["runs"]["prior_on"] for n in names}
+    full = {n: per_scene[n]["runs"][FULL_METHOD] for n in names}
     rows2, rows_obj = [], []
     for n in names:
         r, objs = full[n], list(full[n]["materials"].values())
         sm = interval_summary(objs)
         rows2.append([n, r["re_mean"], r["epe"], sm["e_rel_error_median"], sm["coverage_E"], sm["coverage_nu"],
-                      _identifiable_text(objs), r.get("seconds_per_iteration")])
+                      _identifiable_text(objs), r.get("seconds_per_iteration"),
+                      f"{r.get('iterations')} ({r.get('stopped')})", r.get("wall_seconds")])
         for obj, o in full[n]["materials"].items():
             width = None if o["E_interval"] is None else math.log10(o["E_interval"][1] / o["E_interval"][0])
             rows_obj.append([n, obj, o["E_true"], o["E"], o["e_rel_error"], *_interval_text(o["E_interval"], ".4g"),
@@ -309,7 +346,9 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
     if rows2:
         rows2.append(["suite", _mean([r[1] for r in rows2]), _mean([r[2] for r in rows2]),
                       summary["e_rel_error_median"], summary["coverage_E"], summary["coverage_nu"],
-                      _identifiable_text(suite_objects(per_scene)), _mean([r[7] for r in rows2])])
+                      _identifiable_text(suite_objects(per_scene)), _mean([r[7] for r in rows2]), "-",
+                      _mean([r[9] for r in rows2])])
+    cut = [f"{n} ({key})" for n in names for key, r in per_scene[n]["runs"].items() if r.get("stopped_by_budget")]
     cover = (f"true value inside its 90% interval: E {summary['coverage_E']:.2f} of {summary['n_E']}, nu "
              f"{summary['coverage_nu']:.2f} of {summary['n_nu']}, pooled {summary['coverage']:.2f} (nominal 0.90); "
              f"mean width: E {summary['mean_width_E_decades']:.3g} decades, nu {summary['mean_width_nu']:.3g}")
@@ -320,6 +359,8 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
     rows3 = []
     for init, on in RUNS:
         key = f"{init}_{'on' if on else 'off'}"
+        if not all(key in per_scene[n]["runs"] for n in names):
+            continue  # not measured (--runs)
         fids = [per_scene[n]["runs"][key]["fid"] for n in names]
         rows3.append([init, "on" if on else "off", _mean([per_scene[n]["runs"][key]["re_mean"] for n in names]),
                       _mean([per_scene[n]["runs"][key]["epe"] for n in names]),
@@ -338,10 +379,13 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
     return {
         "table2": {"title": "Table 2: identification per scene (prior init, optimisation on)",
                    "columns": ["scene", "RE", "EPE (px)", "|E/E_true-1| (median)", "E in 90%", "nu in 90%",
-                               "identifiable (E, nu)", "s/iter"], "rows": rows2,
-                   "note": "suite row: RE, EPE and s/iter averaged over the scenes, the other columns over every "
-                           "deformable object; 'in 90%': share of the objects whose true value lies in its 90% "
-                           "interval"},
+                               "identifiable (E, nu)", "s/iter", "iterations (stopped)", "identify s"], "rows": rows2,
+                   "note": "suite row: RE, EPE, s/iter and identify s averaged over the scenes, the other columns "
+                           "over every deformable object; 'in 90%': share of the objects whose true value lies in "
+                           "its 90% interval; identify s: the whole identification (iterations, intervals, "
+                           "evaluation); "
+                           + (f"cut by the time budget: {', '.join(cut)}" if cut else "no run was cut by a time "
+                              "budget")},
         "table2_objects": {"title": "Table 2 per object: identified vs true materials and 90% intervals",
                            "columns": ["scene", "object", "E true (Pa)", "E (Pa)", "|E/E_true-1|", "E 90% lo (Pa)",
                                        "E 90% hi (Pa)", "E width (decades)", "E identifiable", "nu true", "nu",

@@ -12,6 +12,7 @@ from typing import Optional
 import typer
 
 from endogsim.bench.identify import SCENES_CACHE
+from endogsim.bench.suite import DEFAULT_ITERS, RUN_KEYS
 from endogsim.cli.common import console, print_table, progress, user_errors
 from endogsim.io.atomic import write_json_atomic
 
@@ -111,7 +112,13 @@ def register(bench_app: typer.Typer) -> None:
         ray_address: Optional[str] = typer.Option(None, "--ray-address",
                                                   help="Ray cluster address (e.g. ray://host:10001 or auto); implies --ray."),
         scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but tiny)."),
-        iters: Optional[int] = typer.Option(None, "--iters", help="Iterations of the optimised runs (default 30; quick 2)."),
+        iters: Optional[int] = typer.Option(None, "--iters", help=f"Iterations of the optimised runs (default "
+                                            f"{DEFAULT_ITERS}; quick 2)."),
+        runs: Optional[str] = typer.Option(None, "--runs", help=f"Comma-separated runs to do, of {', '.join(RUN_KEYS)} "
+                                           "(default all; the full method alone: prior_on)."),
+        time_budget: Optional[float] = typer.Option(None, "--time-budget", help="Stop each identification after "
+                                                    "this many seconds (default: no stop, so that the figures do "
+                                                    "not depend on the machine's speed)."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Frames per synthesized scene (default: the suite's)."),
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
         fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
@@ -127,7 +134,8 @@ def register(bench_app: typer.Typer) -> None:
         use_ray = ray or ray_address is not None
         res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
                         frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
-                        ray_address=ray_address, threads=threads, log=console.print)
+                        ray_address=ray_address, threads=threads, runs=runs.split(",") if runs else None,
+                        time_budget=time_budget, log=console.print)
         for t in res["tables"].values():
             print_table(t["title"], t["columns"], t["rows"])
             if t.get("note"):

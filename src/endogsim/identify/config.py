@@ -47,8 +47,8 @@ class IdentifyConfig:
         time_budget: a safety stop: no new iteration starts once this many seconds of optimisation have
             passed (None: no limit); the best iterate so far is kept and ``metrics.json`` says
             ``stopped_by_budget``. The learning-rate schedule follows ``iters`` only, so a stopped run is an
-            unstopped one cut short, whatever the machine's speed. The default keeps a benchmark scene within
-            10 minutes on a 2-core CPU, evaluation included.
+            unstopped one cut short, whatever the machine's speed; but how many iterations it got follows the
+            machine's speed, so the benchmarks (``bench suite``, ``bench identify``) run without it.
         tol: relative loss improvement below which an iteration does not count as progress; also the least
             relative rise of the loss that counts as evidence on a parameter's slice
             (:func:`endogsim.identify.uncertainty.counted_z`).
