@@ -32,7 +32,8 @@ def _obj(E: float, nu: float, E_true: float = 1e3, nu_true: float = 0.4, E_iv=No
 def _fake(scene: str, re: float, epe: float, with_global: bool = False, fid=None, objects=None) -> dict:
     runs = {f"{i}_{'on' if on else 'off'}": {"re_mean": re * (0.5 if on else 1), "epe": epe, "fid": fid,
                                              "seconds_per_iteration": 2.0 if on else None,
-                                             "iterations": 10 if on else 0, "stopped": "iters" if on else "no_iterations",
+                                             "iterations": 10 if on else 0,
+                                             "stopped": "iters" if on else "no_iterations",
                                              "stopped_by_budget": False, "wall_seconds": 30.0 if on else 3.0,
                                              "materials": {"a": _obj(1e3, 0.4)}} for i, on in RUNS}
     if objects is not None:
