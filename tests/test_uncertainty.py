@@ -184,6 +184,39 @@ def test_a_side_without_a_significant_rise_nearby_is_tested_at_the_search_box_en
     assert sl.significant == (True, False) and not identifiability(sl, None, "the search box", significant_z(n))[0]
 
 
+def test_values_that_fit_better_than_the_estimate_lie_inside_its_interval():
+    """A bump above the optimum excludes its value, but the loss is lower still farther up (the optimisation
+    stopped short of the slice's minimum, as on ``impulse_paper``): the interval reaches past the lower values,
+    here to the search box's end, and the report says so."""
+    n, best = 10, 3.4
+    thr, sig = critical_z(n), significant_z(n)
+    z_of = {3.3: 5.0, 3.5: 1.2, 3.7: 0.2, 4.4: -2.0, 6.0: -2.5}  # a bump at 3.5 between thr and sig
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
+    assert [r[0] for r in sl.records] == pytest.approx([3.3, 3.5, 3.7, 4.4, 6.0])
+    assert sl.interval[1] == 6.0 and sl.bounded == (True, False)
+    assert sl.interval[0] == pytest.approx(best - 0.1 * thr / 5.0)
+    z_of[6.0] = 1.5  # lower at 4.4 only: the end is where z crosses thr beyond it
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
+    assert sl.interval[1] == pytest.approx(4.4 + 1.6 * (thr + 2.0) / 3.5) and sl.bounded == (True, True)
+    z_of[4.4] = 0.3  # no value fits better: the bump ends the interval, as before
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
+    assert sl.interval[1] == pytest.approx(best + 0.1 * thr / 1.2)
+
+    init, params, opt = _optimum_above_the_prior()
+
+    def per_frame(trial) -> dict[int, float]:
+        """Quadratic in log10 E about opt + 1, with a noisy bump at opt + 0.1 (z 1.1: excluded, not
+        significant)."""
+        e = float(trial.log10_E.detach()[0]) - opt
+        bump = [0.0119 + 0.03 * (-1) ** t if abs(e - 0.1) < 1e-6 else 0.0 for t in range(12)]
+        return {t: 1.0 + 0.01 * (e - 1.0) ** 2 + bump[t] + 1e-4 * (t % 2) for t in range(12)}
+
+    E = parameter_intervals(params, {1: "liver"}, per_frame, lambda trial: ([1.7], [6.0]), False)[0]
+    bump_z = next(r[3] for r in E.slice if abs(math.log10(r[0]) - opt - 0.1) < 1e-6)
+    assert critical_z(12) < bump_z < significant_z(12)
+    assert E.interval[1] > 10 ** (opt + 1.0) and "stopped short of the slice's minimum" in E.reason
+
+
 def test_critical_z():
     assert critical_z(10) == pytest.approx(0.5 * 1.8331, abs=1e-4)  # t_9, 95th percentile
     assert critical_z(100_000) == pytest.approx(0.5 * 1.6449, abs=1e-3)  # the normal limit
