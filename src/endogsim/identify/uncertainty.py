@@ -8,15 +8,16 @@ d_t = l_t(theta) - l_t(theta*) give
 
     Delta L = sum_t d_t,    SE = sqrt(n) std(d_t),    z = Delta L / SE   (n compared frames),
 
-a paired comparison of the two simulations over the frames. theta is excluded from the interval when
-z > z_c; the interval is the connected set of values around theta* that are not excluded, its ends
-interpolated where z crosses z_c, and reaches at least to every trial value whose loss is below theta*'s
-(:func:`interval_from_slice`: theta* is then not the slice's minimum). A parameter is identifiable when
-on each side of theta* some trial value raises the loss significantly above its frame-to-frame noise,
-z > z_s (:func:`significant_z`): a one-sided test at 5% per side of "the loss does not depend on theta",
-under which z follows Student's t with n - 1 degrees of freedom. Slices go outward from theta* (log10 E by
-0.1, 0.3, 1 decade, then to the search box's end; nu by 0.02, 0.06, then to the box's end) and stop at the first significant value: a parameter is
-declared not identifiable only after the loss stayed within its noise over the whole search box on a side.
+a paired comparison of the two simulations over the frames. theta is excluded from the interval when z > z_c;
+the interval is the connected set of values around theta* that are not excluded, its ends interpolated where z
+crosses z_c, and reaches at least to every trial value whose loss is below theta*'s
+(:func:`interval_from_slice`: theta* is then not the slice's minimum). A parameter is identifiable when on
+each side of theta* some trial value raises the loss significantly above its frame-to-frame noise, z > z_s
+(:func:`significant_z`): a one-sided test at 5% per side of "the loss does not depend on theta", under which z
+follows Student's t with n - 1 degrees of freedom. Slices go outward from theta* (log10 E by 0.1, 0.3, 1
+decade, then to the search box's end; nu by 0.02, 0.06, then to the box's end) and stop at the first
+significant value: a parameter is declared not identifiable only after the loss stayed within its noise over
+the whole search box on a side.
 One whose first gradient was zero is not identifiable, whatever its slice.
 
 A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
