@@ -88,6 +88,9 @@ def test_tables_average_over_scenes():
     t = suite_tables({"press": {"scene": "press", "runs": only_full}})
     assert "cut by the time budget: press (prior_on)" in t["table2"]["note"]
     assert [r[:2] for r in t["table3"]["rows"]] == [["prior", "on"]]
+    assert "not run: two_tissues is not among" in t["ablation"]["note"]
+    t = suite_tables({"two_tissues": {"scene": "two_tissues", "runs": only_full}})
+    assert t["ablation"]["note"] == "not run: --runs left out global_on"
     assert t["table2"]["rows"][0][8] == "10 (time_budget)"
 
 
