@@ -202,7 +202,7 @@ def test_values_that_fit_better_than_the_estimate_lie_inside_its_interval():
     sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
     assert sl.interval[1] == pytest.approx(best + 0.1 * thr / 1.2)
 
-    init, params, opt = _optimum_above_the_prior()
+    _, params, opt = _optimum_above_the_prior()
 
     def per_frame(trial) -> dict[int, float]:
         """Quadratic in log10 E about opt + 1, with a noisy bump at opt + 0.1 (z 1.1: excluded, not

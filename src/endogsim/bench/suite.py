@@ -49,9 +49,16 @@ __all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval
 
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
+
+
+def run_key(init: str, on: bool) -> str:
+    """The key (and run folder) of the run from ``init`` with optimisation ``on`` or off, e.g. "prior_on"."""
+    return f"{init}_{'on' if on else 'off'}"
+
+
 #: Every run key :func:`run_scene` knows: the four of :data:`RUNS` and the global-material ablation.
-RUN_KEYS = tuple(f"{init}_{'on' if on else 'off'}" for init, on in RUNS) + ("global_on",)
-FULL_METHOD = "prior_on"
+RUN_KEYS = tuple(run_key(init, on) for init, on in RUNS) + ("global_on",)
+FULL_METHOD = run_key("prior", True)
 #: Iterations of an optimised run. With no time budget (module docstring) a scene's full method then takes
 #: 5-12 minutes on a 2-core CPU (docs/IDENTIFICATION.md section 4 has each scene's seconds per iteration).
 DEFAULT_ITERS = 10
@@ -105,7 +112,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         from endogsim.evaluate.fid import load_inception
 
         net = load_inception(fid_weights)
-    plan = [(f"{init}_{'on' if on else 'off'}", init, on, False) for init, on in RUNS]
+    plan = [(run_key(init, on), init, on, False) for init, on in RUNS]
     if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
         plan.append(("global_on", "prior", True, True))
     plan = [p for p in plan if runs is None or p[0] in runs]
@@ -120,7 +127,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
                                                "epe", "psnr", "ssim", "seconds", "iterations")}
         rec["seconds_per_iteration"] = m["seconds"] / m["iterations"] if m.get("iterations") else None
         rec["stopped"] = m.get("stopped")
-        rec["stopped_by_budget"] = m.get("stopped") == "time_budget"
+        rec["stopped_by_budget"] = m.get("stopped_by_budget", False)
         rec["wall_seconds"] = time.perf_counter() - t_run
         rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
@@ -305,7 +312,7 @@ def _mean(vals: list[float]) -> float:
 def suite_objects(per_scene: dict[str, dict]) -> list[dict]:
     """Every deformable object of the suite as the full method (``prior_on``) identified it
     (:func:`object_results` records)."""
-    return [o for r in per_scene.values() for o in r["runs"]["prior_on"]["materials"].values()]
+    return [o for r in per_scene.values() for o in r["runs"][FULL_METHOD]["materials"].values()]
 
 
 def _interval_text(iv: list[float] | None, spec: str) -> tuple:
@@ -358,7 +365,7 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
                   f"{summary['coverage_statistical']:.2f}")
     rows3 = []
     for init, on in RUNS:
-        key = f"{init}_{'on' if on else 'off'}"
+        key = run_key(init, on)
         if not all(key in per_scene[n]["runs"] for n in names):
             continue  # not measured (--runs)
         fids = [per_scene[n]["runs"][key]["fid"] for n in names]
@@ -373,7 +380,7 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
                                       else "--runs left out global_on"))
     else:
         abl["title"] = f"Material field ablation on {src['scene']}"
-        for key, label in (("prior_on", "object-wise material field"), ("global_on", "one global material")):
+        for key, label in ((FULL_METHOD, "object-wise material field"), ("global_on", "one global material")):
             r = src["runs"][key]
             mats = "; ".join(f"{n} {v['E']:.4g} / {v['nu']:.3f}" for n, v in r["materials"].items())
             abl["rows"].append([label, r["re_mean"], r["epe"], mats])
