@@ -6,6 +6,10 @@ substeps per second, the backward/forward time ratio, and (at 32k) the peak memo
 ``full``-mode rollout, measured in a fresh child process so earlier cases do not count (CPU: peak resident
 set size of that whole process, Python + torch + Warp included; CUDA: Warp's memory-pool high-water mark).
 
+``--threads 1,2`` measures every case at each torch thread count, side by side in one run (this machine's
+speed drifts between runs): a CPU launch runs on one core, and with two or more threads the backward pass
+recomputes the next frame on a second thread while this frame's adjoints run (:mod:`endogsim.physics.rollout`).
+
 Scene: a jelly block (8 particles per grid cell) under gravity on a fixed base, E = 1e4 Pa, nu = 0.3,
 rho = 1000 kg/m^3 in a 0.1 m box, fixed corotated, 25 substeps of 2e-4 s per frame (the paper's numerics).
 """
@@ -45,8 +49,21 @@ def _materials(log10_E, nu, rho):
     return ObjectMaterials.of(10.0 ** log10_E, nu, rho, "fixed_corotated")
 
 
-def measure(particles: int, device: str, frames: int) -> dict:
-    """Forward and forward+backward (frame mode) throughput for one case."""
+def measure(particles: int, device: str, frames: int, threads: int | None = None) -> dict:
+    """Forward and forward+backward (frame mode) throughput for one case, with ``threads`` torch threads
+    (None: the process's setting, which is put back after)."""
+    import torch
+
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        return {"threads": torch.get_num_threads(), **_measure(particles, device, frames)}
+    finally:
+        torch.set_num_threads(before)
+
+
+def _measure(particles: int, device: str, frames: int) -> dict:
     import torch
 
     from endogsim.physics import mpm_rollout
@@ -104,12 +121,16 @@ def peak_memory_mb(particles: int, device: str, frames: int) -> float:
     return rec["gpu_mb"] if rec["gpu_mb"] is not None else rec["rss_mb"]
 
 
-def run_bench(sizes: list[int], frames: int, mem_frames: int, devices: list[str], memory: bool = True) -> list[dict]:
+def run_bench(sizes: list[int], frames: int, mem_frames: int, devices: list[str], memory: bool = True,
+              threads: list[int] | None = None) -> list[dict]:
+    """One row per device, particle count and thread count (``threads``; None: the process's setting);
+    the peak memory once per device at 32k particles."""
     cases = []
     for device in devices:
         for n in sizes:
-            row = measure(n, device, frames)
-            if memory and n == 32768:
-                row["peak_mem_mb"] = peak_memory_mb(n, device, mem_frames)
-            cases.append(row)
+            for k, t in enumerate(threads or [None]):
+                row = measure(n, device, frames, t)
+                if memory and n == 32768 and k == 0:
+                    row["peak_mem_mb"] = peak_memory_mb(n, device, mem_frames)
+                cases.append(row)
     return cases

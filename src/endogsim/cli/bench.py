@@ -17,6 +17,17 @@ from endogsim.cli.common import console, print_table, progress, user_errors
 from endogsim.io.atomic import write_json_atomic
 
 
+def parse_counts(text: str, option: str) -> list[int]:
+    """Comma-separated whole numbers >= 1 (e.g. ``--threads 1,2``), or a clear error naming ``option``."""
+    try:
+        counts = [int(v) for v in text.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        raise typer.BadParameter(f"{option} {text!r}: comma-separated whole numbers >= 1, e.g. 1,2")
+    return counts
+
+
 def register(bench_app: typer.Typer) -> None:
     """Add ``render``, ``mpm``, ``identify``, ``suite`` and ``convergence`` to the ``bench`` sub-app."""
 
@@ -59,6 +70,8 @@ def register(bench_app: typer.Typer) -> None:
         mem_frames: int = typer.Option(20, help="Frames of the full-mode memory run at 32k particles."),
         no_memory: bool = typer.Option(False, "--no-memory", help="Skip the full-mode peak-memory run."),
         device: str = typer.Option("auto", help="cpu, cuda, or auto (cpu plus cuda when available)."),
+        threads: Optional[str] = typer.Option(None, "--threads", help="Torch thread counts to measure each case "
+                                              "at, side by side (comma separated; default: the process's)."),
     ) -> None:
         """Forward / backward throughput of the MPM simulator and full-mode peak memory."""
         import warp as wp
@@ -69,9 +82,12 @@ def register(bench_app: typer.Typer) -> None:
         init_warp()
         devices = ["cpu", "cuda"] if device == "auto" and wp.is_cuda_available() else (["cpu"] if device == "auto" else [device])
         counts = [int(s) for s in sizes.split(",") if s.strip()]
-        cases = run_bench(counts, frames, mem_frames, devices, memory=not no_memory)
-        cols = ["device", "particles", "grid", "forward_pss", "backward_pss", "backward_over_forward", "peak_mem_mb"]
-        labels = ["device", "particles", "grid", "fwd p-sub/s", "fwd+bwd p-sub/s", "bwd/fwd", f"peak MB ({mem_frames} fr full)"]
+        thread_counts = None if threads is None else parse_counts(threads, "--threads")
+        cases = run_bench(counts, frames, mem_frames, devices, memory=not no_memory, threads=thread_counts)
+        cols = ["device", "particles", "grid", "threads", "forward_pss", "backward_pss", "backward_over_forward",
+                "peak_mem_mb"]
+        labels = ["device", "particles", "grid", "threads", "fwd p-sub/s", "fwd+bwd p-sub/s", "bwd/fwd",
+                  f"peak MB ({mem_frames} fr full)"]
         print_table("MLS-MPM (Warp): particle-substeps/s, backward in frame mode", labels,
                     [[("-" if c[k] is None else c[k]) for k in cols] for c in cases])
         if json_path is not None:
@@ -166,10 +182,7 @@ def register(bench_app: typer.Typer) -> None:
         if frames is not None and frames < 2:
             raise typer.BadParameter("--frames must be >= 2")
         if levels is not None:
-            try:
-                steps = [int(v) for v in levels.split(",")]
-            except ValueError:
-                raise typer.BadParameter(f"--levels {levels!r}: comma-separated whole factors, e.g. 1,2,3") from None
+            steps = parse_counts(levels, "--levels")
             res = run_bench(names, frames, log=console.print, levels=steps)
             print_table(f"Refinement sequence {' -> '.join(f'{f}x' for f in steps)}: RMS motion change from each "
                         "level to the next",
