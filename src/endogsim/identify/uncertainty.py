@@ -22,16 +22,18 @@ One whose first gradient was zero is not identifiable, whatever its slice.
 
 A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
 (identification's ``tol``, the relative change its optimiser counts as no progress) counts with at most the
-interval's critical z, however consistent over the frames: it neither excludes its value from the interval
-nor counts as significant (a rise below both thresholds keeps its z, so the interval's interpolated ends move
-only where the floor decides). The frame-to-frame test alone cannot see such a floor: two simulations
-that differ by float32 rounding differ consistently, frame after frame. Measured on CholecSeg8K's
-calibration (docs/REAL_VIDEO.md section 6): moving the gallbladder's E by a factor 1 + 1e-7, 1 + 1e-5 or
-1 + 1e-3 changed every particle's trajectory by the same 5e-6 mm RMS (rounding; the tissue's whole simulated
-motion was 1.4 um) and the loss by 0.7-1.0e-5 of its value, with |z| up to 1.2, while other trials of that
-run rose "significantly" (z 2-3.6) by 2e-5 to 3e-4 of it: enough to call a parameter identifiable from
-noise. No stored run of the suite or the demo has a trial above the critical z with a rise below 1e-3
-(docs/IDENTIFICATION.md section 1); both real clips have several.
+interval's critical z, however consistent over the frames: it neither excludes its value from the interval nor
+counts as significant (a rise below both thresholds keeps its z, so the interval's interpolated ends move only
+where the floor decides). A fall that small does not make a value significantly better either (the report says
+the optimisation stopped short only for a fall of at least the floor; the value still lies inside the interval,
+as every value that fits better does). The frame-to-frame test alone cannot see such a floor: two simulations
+that differ by float32 rounding differ consistently, frame after frame. Measured on CholecSeg8K's calibration
+(docs/REAL_VIDEO.md section 6): moving the gallbladder's E by a factor 1 + 1e-7, 1 + 1e-5 or 1 + 1e-3 changed
+every particle's trajectory by the same 5e-6 mm RMS (rounding; the tissue's whole simulated motion was 1.4 um)
+and the loss by 0.7-1.0e-5 of its value, with |z| up to 1.2, while other trials of that run rose
+"significantly" (z 2-3.6) by 2e-5 to 3e-4 of it: enough to call a parameter identifiable from noise. No stored
+run of the suite or the demo has a trial above the critical z with a rise below 1e-3 (docs/IDENTIFICATION.md
+section 1); both real clips have several.
 
 The critical value (:func:`critical_z`). Near the optimum l_t(theta* + a) = l_t(theta*) + g_t a + h_t a^2 / 2
 with sum_t g_t = 0, so Delta L = H a^2 / 2 (H = sum_t h_t) and SE = |a| sqrt(n) std(g_t): z = |a| / (2 s),
@@ -556,7 +558,7 @@ def parameter_intervals(
             reason += (f"; {len(small)} trial value(s) whose loss rose consistently over the frames but by less "
                        f"than {min_relative_rise:.2g} of its value did not count (z "
                        + ", ".join(f"{r[3]:.3g}" for r in small) + ")")
-        better = [r for r in records if r[3] < -significance]
+        better = [r for r in records if r[3] < -significance and -r[1] >= min_rise]  # the floor, as for a rise
         if better:
             r = min(better, key=lambda r: r[1])
             reason += (f"; the loss is significantly lower at {what} = {to_value(r[0]):.4g} (z {r[3]:.3g}) than at "
