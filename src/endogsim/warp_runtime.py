@@ -28,7 +28,7 @@ import torch
 import warp as wp
 
 __all__ = ["init_warp", "KERNEL_MODULES", "build_kernels", "kernels_built_aside", "warp_array", "warp_device",
-           "float_vector", "n_bands", "launch_split", "independent_runs",
+           "float_vector", "n_bands", "launch_split", "independent_runs", "torch_threads",
            "run_independent", "check_cancelled", "Cancelled", "simulation_bytes", "available_memory"]
 
 _ready = False
@@ -151,6 +151,19 @@ def float_vector(n: int):
 def n_bands(device: str, n_items: int, min_items: int = 4096) -> int:
     """Bands a launch over ``n_items`` is split into: one per torch thread on CPU (at most 8), one on CUDA."""
     return 1 if device != "cpu" or n_items < min_items else max(1, min(torch.get_num_threads(), 8))
+
+
+@contextmanager
+def torch_threads(threads: int | None) -> Iterator[None]:
+    """Run the body with ``threads`` torch threads (None: the process's setting), then put the process's
+    setting back (the thread count is the budget of Warp's CPU bands and trials side by side too)."""
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def independent_runs(device: str, bytes_per_run: int = 0) -> int:

@@ -54,13 +54,10 @@ def measure(particles: int, device: str, frames: int, threads: int | None = None
     (None: the process's setting, which is put back after)."""
     import torch
 
-    before = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
+    from endogsim.warp_runtime import torch_threads
+
+    with torch_threads(threads):
         return {"threads": torch.get_num_threads(), **_measure(particles, device, frames)}
-    finally:
-        torch.set_num_threads(before)
 
 
 def _measure(particles: int, device: str, frames: int) -> dict:

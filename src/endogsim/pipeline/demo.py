@@ -103,19 +103,13 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
              on_stage: Callable[[str, str], None] | None = None) -> dict:
     """Run (or resume) the demo into ``out`` with ``cfg.threads`` torch threads; returns the summary (also
     written to ``out/summary.json``)."""
-    from endogsim.warp_runtime import KERNEL_MODULES, kernels_built_aside
+    from endogsim.warp_runtime import KERNEL_MODULES, kernels_built_aside, torch_threads
 
-    before = torch.get_num_threads()
-    if cfg.threads is not None:
-        torch.set_num_threads(cfg.threads)
-    try:
-        # The synthesis builds the simulator's kernels; the later stages' kernels are built meanwhile on
-        # a core the one-thread demo leaves idle (on a machine's first run, ~20 s of Warp builds).
-        with kernels_built_aside([KERNEL_MODULES[k] for k in ("render", "hexplane", "adjoints")]):
-            summary = _run_demo(out, cfg, on_stage)
-    finally:
-        torch.set_num_threads(before)
-    return summary
+    # The synthesis builds the simulator's kernels; the later stages' kernels are built meanwhile on a core
+    # the one-thread demo leaves idle (on a machine's first run, ~20 s of Warp builds).
+    with torch_threads(cfg.threads), kernels_built_aside([KERNEL_MODULES[k] for k in ("render", "hexplane",
+                                                                                       "adjoints")]):
+        return _run_demo(out, cfg, on_stage)
 
 
 def _run_demo(out: str | Path, cfg: DemoConfig, on_stage: Callable[[str, str], None] | None) -> dict:
