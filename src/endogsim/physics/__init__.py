@@ -37,7 +37,8 @@ Public API
 - :class:`Scenario` (box, gravity m/s^2, anchors, forces, colliders); :class:`Anchor` (world box and/or
   particle mask; "fixed" | "sticky" | "slip"); :class:`ExternalForce` (acceleration m/s^2 on a region over
   [t_start, t_end), or an impulse = velocity change); :class:`RigidCollider` (points [Pc,3] + transforms
-  [T,4,4], or positions [T,Pc,3]; kinematic, sticky contact; ``holds``: grasped particles).
+  [T,4,4], or positions [T,Pc,3]; kinematic, sticky contact; ``holds``: grasped particles);
+  :class:`MovingAnchor` (particles [N] held on paths [T,N,3]: a boundary that moves as observed).
 - :class:`Particles` (x [P,3] m, volume [P] m^3, object_ids [P], v [P,3] m/s or None);
   ``Particles.box(lo, hi, spacing, object_id)``; :func:`particles_from_gaussians`.
 - :func:`capsule_collider_points`: points filling a tool capsule for a :class:`RigidCollider`;
@@ -64,7 +65,7 @@ from importlib import import_module
 # in Warp and the kernels.
 _EXPORTS = {
     "GRAD_MODES": "modes", "GradMode": "modes",
-    "Anchor": "config", "ExternalForce": "config", "MPMConfig": "config", "RigidCollider": "config",
+    "Anchor": "config", "ExternalForce": "config", "MovingAnchor": "config", "MPMConfig": "config", "RigidCollider": "config",
     "Scenario": "config", "SETTLING_TOLERANCE": "config",
     "ObjectMaterials": "materials",
     "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",

@@ -239,6 +239,46 @@ class RigidCollider:
 
 
 @dataclass
+class MovingAnchor:
+    """Particles held on a prescribed path: a boundary that moves as observed (the outline of a tissue in view
+    follows the reconstruction's tracks of the tissue there, because the tissue goes on beyond the image and
+    is moved by what the camera does not see).
+
+    Like a grasper's bite (:attr:`RigidCollider.holds`) but not rigid: each particle goes to its own position
+    every frame (a Dirichlet condition on the particle, constant velocity between frames), and the grid nodes
+    within ``radius`` of the held particles take their velocity, as around a collider's points.
+
+    Attributes:
+        particles: [N] indices of the held particles (they start at their rest positions, ``positions[0]``).
+        positions: [T, N, 3] world positions per output frame (metres).
+        radius: contact radius of the nodes around them (metres).
+    """
+
+    particles: torch.Tensor | np.ndarray
+    positions: torch.Tensor | np.ndarray
+    radius: float
+
+    def __post_init__(self) -> None:
+        self.particles = torch.as_tensor(self.particles, dtype=torch.long).reshape(-1)
+        self.positions = torch.as_tensor(self.positions, dtype=torch.float64)
+        if self.positions.ndim != 3 or self.positions.shape[1:] != (len(self.particles), 3):
+            raise SimulationError(f"MovingAnchor.positions has shape {tuple(self.positions.shape)}, expected "
+                                  f"(T, {len(self.particles)}, 3)")
+        if not torch.isfinite(self.positions).all():
+            raise SimulationError("MovingAnchor.positions holds NaN/inf")
+        if not self.radius > 0:
+            raise SimulationError(f"MovingAnchor.radius = {self.radius} m must be > 0")
+
+    def still(self, frames: int) -> "MovingAnchor":
+        """The same particles held where they are at frame 0 for ``frames`` frames."""
+        return replace(self, positions=self.positions[:1].expand(frames, -1, -1).clone())
+
+    def collider(self) -> RigidCollider:
+        """The held particles' paths as collider points (the nodes around them take their velocity)."""
+        return RigidCollider(positions=self.positions, radius=self.radius)
+
+
+@dataclass
 class Scenario:
     """Everything about the world a simulation needs besides particles and materials.
 
@@ -248,6 +288,7 @@ class Scenario:
         anchors: boundary conditions on regions (see :class:`Anchor`).
         forces: external accelerations / impulses (see :class:`ExternalForce`).
         colliders: kinematic rigid instruments (see :class:`RigidCollider`).
+        moving_anchors: particles held on prescribed paths (see :class:`MovingAnchor`).
         settle_frames: frames simulated before frame 0 with the colliders at their frame-0 pose and no
             external force but gravity, so that frame 0 is the equilibrium under gravity (a tissue seen at
             rest in a video is not stress-free: it carries its weight). 0: frame 0 is stress-free.
@@ -270,6 +311,7 @@ class Scenario:
     anchors: list[Anchor] = field(default_factory=list)
     forces: list[ExternalForce] = field(default_factory=list)
     colliders: list[RigidCollider] = field(default_factory=list)
+    moving_anchors: list[MovingAnchor] = field(default_factory=list)
     settle_frames: int = 0
     settle: Literal["keep", "subtract"] = "subtract"
     settle_damping: float | None = None
@@ -302,9 +344,22 @@ class Scenario:
                 pinned |= a.contains(x)
         return pinned
 
+    def held(self, x: np.ndarray) -> np.ndarray:
+        """[P] bool: particles (rest positions ``x`` [P, 3]) a boundary condition holds, still (:meth:`pinned`)
+        or on a path (``moving_anchors``): no instrument may also hold them."""
+        out = self.pinned(x)
+        for a in self.moving_anchors:
+            out[a.particles.numpy()] = True
+        return out
+
+    def boundary_still(self, frames: int) -> "Scenario":
+        """This scenario with every moving anchor held at its frame-0 place for ``frames`` frames (an
+        interaction that is not the filmed clip has no observed boundary motion)."""
+        return replace(self, moving_anchors=[a.still(frames) for a in self.moving_anchors])
+
     def with_settling(self, frame_dt: float) -> "Scenario":
-        """The scenario over settle_frames + T frames: colliders held at their frame-0 pose and forces
-        shifted in time by the settling (the same world, seen from the start of the settling)."""
+        """The scenario over settle_frames + T frames: colliders and moving anchors held at their frame-0 pose,
+        forces shifted in time by the settling (the same world, seen from the start of the settling)."""
         if self.settle_frames == 0:
             return self
         S, shift = self.settle_frames, self.settle_frames * frame_dt
@@ -318,7 +373,10 @@ class Scenario:
                 colliders.append(RigidCollider(positions=torch.cat([traj[:1].expand(S, -1, -1), traj]),
                                                radius=c.radius))
         forces = [replace(f, t_start=f.t_start + shift, t_end=f.t_end + shift) for f in self.forces]
-        return replace(self, colliders=colliders, forces=forces, settle_frames=0, settle_damping=None)
+        moving = [replace(a, positions=torch.cat([a.positions[:1].expand(S, -1, -1), a.positions]))
+                  for a in self.moving_anchors]
+        return replace(self, colliders=colliders, forces=forces, moving_anchors=moving, settle_frames=0,
+                       settle_damping=None)
 
     def mass_scaled(self) -> "Scenario":
         """The world the simulator runs with ``mass_scaling`` = k applied: gravity, body accelerations and

@@ -255,8 +255,24 @@ class MPMEngine:
             radius = (c.radius * s) if c.radius is not None else 1.0 / self.inv_dx
             frames = [wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
             self.colliders.append((frames, float(radius)))
+        for a in scenario.moving_anchors:  # held on their own paths; the nodes around them take their velocity
+            traj = a.positions[:num_frames]
+            if traj.shape[0] < num_frames:
+                raise SimulationError(f"a moving anchor has {traj.shape[0]} frames, the rollout needs {num_frames}")
+            idx = a.particles.numpy()
+            if len(idx) and (idx.min() < 0 or idx.max() >= self.P):
+                raise SimulationError(f"MovingAnchor.particles has indices outside [0, {self.P})")
+            if (held_index[idx] >= 0).any() or pinned[idx].any():
+                raise SimulationError("a particle of a moving anchor is also held by an instrument or anchored")
+            held_index[idx] = sum(len(h) for h in held_traj) + np.arange(len(idx), dtype=np.int32)
+            held_traj.append(traj.permute(1, 0, 2))
+            traj_sim = to_sim(traj)
+            self.colliders.append(([wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev)
+                                    for t in range(num_frames)], float(a.radius * s)))
         pm.held = wp.from_numpy(held_index, dtype=wp.int32, device=dev)
-        held_sim = to_sim(torch.cat(held_traj).permute(1, 0, 2)) if held_traj else torch.zeros(num_frames, 1, 3)
+        held_sim = torch.zeros(num_frames, 1, 3)
+        if held_traj:
+            held_sim = to_sim(torch.cat([h[:, :num_frames] for h in held_traj]).permute(1, 0, 2))
         self.held_frames = [wp.array(held_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
 
     # -- set-up ----------------------------------------------------------------------------------------

@@ -250,8 +250,7 @@ class Simulator:
         self.particles, self.scenario, self.config, self.num_frames = particles, scenario, config, num_frames
         self._engine: MPMEngine | None = None
         self._collider_speed = 0.0
-        for c in scenario.colliders:
-            traj = c.trajectory()
+        for traj in [c.trajectory() for c in scenario.colliders] + [a.positions for a in scenario.moving_anchors]:
             if traj.shape[0] > 1:
                 self._collider_speed = max(self._collider_speed,
                                            float((traj[1:] - traj[:-1]).norm(dim=-1).max()) / config.frame_dt)

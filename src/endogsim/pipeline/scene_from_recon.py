@@ -62,6 +62,12 @@ class RealScenario:
             and the tissue behind rests on a support (``back_face``), so thicker tissue adds little.
         border: width (metres) of the band held along each tissue object's outline in view: the tissue goes on
             beyond the image.
+        border_motion: how the band is held: "tracked" (the default) moves it along the reconstruction's
+            tracks of the tissue there, "still" holds it at rest. What moves real tissue is mostly out of view
+            (the grasper's pull carried through the membrane, breathing, the tissue beyond the image): on
+            EndoNeRF pulling a band held still left the simulated tissue motionless in the held-out frames,
+            0.371 px EPE like a frozen frame; tracked, the tissue inside the band follows and the held-out EPE
+            falls by about a tenth where the band is not (docs/REAL_VIDEO.md section 9).
         back_face: "support": the anatomy behind pushes, never pulls, so a grasper can lift the tissue off.
         box_margin: free space around the tissue in the sim box, as a fraction of its extent per side.
         cells_across: grid cells across ``thickness`` (:mod:`endogsim.scene.discretisation`).
@@ -98,6 +104,7 @@ class RealScenario:
 
     thickness: float = 0.008
     border: float = 0.004
+    border_motion: Literal["tracked", "still"] = "tracked"
     back_face: str = "support"
     box_margin: float = 0.1
     cells_across: int = 3
@@ -115,6 +122,8 @@ class RealScenario:
     def __post_init__(self) -> None:
         if self.grasping not in ("graspers", "all", "none"):
             raise DataError(f"scenario.grasping {self.grasping!r} must be graspers|all|none")
+        if self.border_motion not in ("tracked", "still"):
+            raise DataError(f"scenario.border_motion {self.border_motion!r} must be tracked|still")
 
 
 @dataclass
@@ -373,7 +382,8 @@ def _real_scenario(objects: list[dict], tissue_pts: np.ndarray, frame_dt: float,
     return {
         "box_lo": box_lo, "box_size": size, "gravity": g.tolist(), "frame_dt": frame_dt, "damping": sc.damping,
         "boundary_conditions": [{"type": "box_walls", "cells": 2}] + [
-            {"type": "anchors", "object": o["name"], "back_face": sc.back_face, "border": sc.border}
+            {"type": "anchors", "object": o["name"], "back_face": sc.back_face, "border": sc.border,
+             "border_motion": sc.border_motion}
             for o in objects if not o["rigid"]],
         "tools": [],
         "extrusion": {"along": "viewing_rays", "thickness": {o["name"]: sc.thickness for o in objects if not o["rigid"]}},

@@ -161,7 +161,7 @@ def build_interaction(problem, inter: Interaction):
             info["tool_point"] = p.tolist()
         driven[tid] = start + tool_offsets([list(k) for k in inter.tool.keyframes], T)
     grasp_collider = None
-    free = ~problem.scenario.pinned(problem.particles.x.double().numpy())
+    free = ~problem.scenario.held(problem.particles.x.double().numpy())
     if inter.grasp is not None:
         p = surface_point(problem, inter.grasp)
         info["grasp_point"] = p.tolist()
@@ -221,7 +221,8 @@ def build_interaction(problem, inter: Interaction):
         hide = torch.isin(g.object_ids, torch.tensor(hidden))
         g = g.with_(opacity_logits=torch.where(hide, torch.full_like(g.opacity_logits, -30.0), g.opacity_logits))
     info["hidden_tools"] = hidden
-    scenario = replace(problem.scenario, forces=forces, colliders=colliders)
+    # A border that followed the clip's tracks holds still: the interaction's frames were never filmed.
+    scenario = replace(problem.scenario.boundary_still(T), forces=forces, colliders=colliders)
     # A new interaction is not the video: its instruments are drawn in every frame it simulates, and it is
     # seen by frame 0's camera (the world frame) as frame 0 exposed it (the video's visibility, camera path
     # and exposure are about the filmed frames, and the interaction may be longer).

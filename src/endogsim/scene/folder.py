@@ -204,8 +204,17 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     tool_visible = {tool.object_id: torch.tensor(tool.visible[:T]) for tool in sc.tools
                     if tool.visible is not None and not all(tool.visible[:T])}
     colliders = tool_colliders(sc.tools, particles, ~filled.pinned, dx, tool_tf)
+    tracks = None
+    if spec.files.get("tracks"):
+        tracks = read_tissue_tracks(folder / spec.files["tracks"], len(g.means), T)
+    moving = []
+    if filled.tracked_border().any():
+        if tracks is None:
+            raise DataError(f"{folder}: scene.json's border_motion 'tracked' needs the reconstruction's tissue "
+                            "tracks (files.tracks), which this scene does not have")
+        moving = filled.moving_anchors(tracks, g.object_ids[tracks.index].numpy(), dx)
     scenario = Scenario(box, gravity=tuple(float(v) for v in sc.gravity), anchors=filled.anchors(),
-                        forces=scenario_forces(spec, particles), colliders=colliders,
+                        forces=scenario_forces(spec, particles), colliders=colliders, moving_anchors=moving,
                         settle_frames=int(sc.settle_frames), settle="subtract", settle_damping=sc.settle_damping,
                         mass_scaling=float(sc.mass_scaling))
     walls = next((int(b.get("cells", 2)) for b in sc.boundary_conditions if b.get("type") == "box_walls"), 2)
@@ -218,9 +227,6 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         if viewmats.shape[1:] != (4, 4) or viewmats.shape[0] < T:
             raise DataError(f"{folder}: camera.viewmats has shape {tuple(viewmats.shape)}; expected [{T}, 4, 4]")
         viewmats = viewmats[:T]
-    tracks = None
-    if spec.files.get("tracks"):
-        tracks = read_tissue_tracks(folder / spec.files["tracks"], len(g.means), T)
     exposure = None
     if cam_t.exposure is not None:
         exposure = torch.tensor([cam_t.exposure["log_gain"], cam_t.exposure["bias"]], dtype=torch.float32)

@@ -29,10 +29,11 @@ import torch
 from endogsim.errors import DataError, DataWarning
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
-from endogsim.physics import Anchor, ExternalForce, Particles, RigidCollider
+from endogsim.physics import Anchor, ExternalForce, MovingAnchor, Particles, RigidCollider
 from endogsim.physics.filling import FilledSolid, SurfaceMap, fill_behind_surface, outline_beside
 from endogsim.physics.particles import capsule_collider, grasped_particles
 from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings, ToolCapsule
+from endogsim.scene.tracks import TissueTracks
 
 __all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "one_object_per_place",
            "scenario_forces", "tool_colliders"]
@@ -92,7 +93,7 @@ class SlabConditions:
             out.append(Anchor(kind="sticky", region=self.behind))
         elif self.boundary.back_face in ("support", "slip_support"):
             out.append(Anchor(kind=self.boundary.back_face, region=self.behind, normal=self.towards_camera))
-        if self.boundary.border > 0:
+        if self.boundary.border > 0 and self.boundary.border_motion == "still":
             out.append(Anchor(kind="sticky", region=self.border))
         return out
 
@@ -103,20 +104,50 @@ class SceneParticles:
 
     Attributes:
         particles: the particles (positions, volumes spacing^3, object ids).
-        pinned: [P] bool, held at their rest position (back face "fixed", border band).
+        pinned: [P] bool, held by a boundary condition (back face "fixed", border band, still or tracked).
         slabs: {object id: its :class:`SlabConditions`}.
+        border: [P] bool, the particles of the border bands (part of ``pinned``).
     """
 
     particles: Particles
     pinned: np.ndarray
     slabs: dict[int, SlabConditions]
+    border: np.ndarray
+
+    def tracked_border(self) -> np.ndarray:
+        """[P] bool: the border particles of the objects whose band follows the tracks (``border_motion``)."""
+        ids = self.particles.object_ids.numpy()
+        tracked = [oid for oid, slab in self.slabs.items() if slab.boundary.border_motion == "tracked"]
+        return self.border & np.isin(ids, tracked)
 
     def anchors(self) -> list[Anchor]:
-        """The :class:`~endogsim.physics.Anchor` list of these boundary conditions: pinned particles, and
-        every slab's node conditions (behind its back face; along its outline)."""
-        out = [Anchor(kind="fixed", particle_mask=torch.as_tensor(self.pinned))] if self.pinned.any() else []
+        """The :class:`~endogsim.physics.Anchor` list of these boundary conditions: pinned particles held at
+        rest, and every slab's node conditions (behind its back face; along a still outline)."""
+        still = self.pinned & ~self.tracked_border()
+        out = [Anchor(kind="fixed", particle_mask=torch.as_tensor(still))] if still.any() else []
         for slab in self.slabs.values():
             out += slab.anchors()
+        return out
+
+    def moving_anchors(self, tracks: TissueTracks, track_objects: np.ndarray, dx: float) -> list[MovingAnchor]:
+        """One :class:`~endogsim.physics.MovingAnchor` per object whose border follows the tracks: its band's
+        particles carried by the object's own tracks (:meth:`TissueTracks.carry`), the nodes within 0.45 dx
+        of them (a collider's contact radius) moving with them.
+
+        Args:
+            tracks: the reconstruction's tissue tracks; track_objects: [N_tracks] object id of each.
+            dx: grid cell (metres).
+        """
+        ids = self.particles.object_ids.numpy()
+        x = self.particles.x.double().numpy()
+        tracked = self.tracked_border()
+        out = []
+        for oid in np.unique(ids[tracked]):
+            idx = np.nonzero(tracked & (ids == oid))[0]
+            use = np.asarray(track_objects) == oid
+            if not use.any():
+                raise DataError(f"object {int(oid)}'s border follows the tissue tracks, but none is on it")
+            out.append(MovingAnchor(idx, tracks.carry(x[idx], use), radius=0.45 * dx))
         return out
 
 
@@ -154,7 +185,7 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
         if len(pts) >= 3:
             solids[oid], maps[oid] = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
     kept = one_object_per_place(solids, origin, spacing)
-    parts, pinned, slabs = [], [], {}
+    parts, pinned, borders, slabs = [], [], [], {}
     for oid, pts in surfaces.items():
         name = spec.object(oid).name
         solid = solids.get(oid)
@@ -167,6 +198,7 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
         others = [m for o, m in maps.items() if o != oid and kept[o].any()]
         slab = SlabConditions(outline_beside(maps[oid], others), sc.thickness(name), sc.boundary(name))
         pin = slab.border(x)
+        borders.append(pin.copy())
         if slab.boundary.back_face == "fixed":  # the deepest lattice layer is glued to the anatomy behind
             pin |= (solid.depth_behind[kept[oid]] >= slab.thickness - spacing) & ~slab.released(x)
         P = len(x)
@@ -180,7 +212,7 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
                         f"(spacing {spacing * 1e3:.2f} mm)")
     for oid, slab in slabs.items():
         slab.neighbours = [s for o, s in slabs.items() if o != oid]
-    return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs)
+    return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs, np.concatenate(borders))
 
 
 def one_object_per_place(solids: dict[int, FilledSolid], origin: np.ndarray, spacing: float) -> dict[int, np.ndarray]:

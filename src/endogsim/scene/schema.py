@@ -122,14 +122,17 @@ class ObjectBoundary:
             "fixed" (glued to the anatomy behind), "support" (resting on it: pushed, never pulled, so it can be
             lifted off; it does not slide while pressed), "slip_support" (the same without friction: wet tissue
             on wet anatomy) or "free".
-        border: width (metres) of the band along the object's outline that is held fixed (the tissue goes
-            on beyond the view); 0 for none.
+        border: width (metres) of the band along the object's outline that is held (the tissue goes on
+            beyond the view); 0 for none.
+        border_motion: how the band is held: "still" (at rest) or "tracked" (it follows the reconstruction's
+            tracks of the tissue there, ``tracks.npz``: what moves the tissue beyond the view moves the band).
         release: (centre [x, y] metres, radius metres) of a disc where the back face is free, or None.
     """
 
     back_face: str = "fixed"
     border: float = 0.0
     release: tuple[tuple[float, float], float] | None = None
+    border_motion: str = "still"
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ObjectBoundary":
@@ -139,7 +142,10 @@ class ObjectBoundary:
             raise DataError(f"boundary condition back_face {back!r} is not fixed|support|slip_support|free")
         rel = d.get("release")
         release = None if rel is None else ((float(rel["center"][0]), float(rel["center"][1])), float(rel["radius"]))
-        return ObjectBoundary(back, float(d.get("border", 0.0)), release)
+        motion = str(d.get("border_motion", "still"))
+        if motion not in ("still", "tracked"):
+            raise DataError(f"boundary condition border_motion {motion!r} is not still|tracked")
+        return ObjectBoundary(back, float(d.get("border", 0.0)), release, motion)
 
 
 @dataclass

@@ -48,6 +48,24 @@ class TissueTracks:
         """The tracks over the first ``frames`` frames."""
         return TissueTracks(self.index, self.positions[:frames])
 
+    def carry(self, points: np.ndarray, use: np.ndarray | None = None, neighbours: int = 8) -> np.ndarray:
+        """[T, N, 3] paths of world points ``points`` [N, 3] (metres, where they are at frame 0) moved by
+        the tracks: each by the inverse-square-distance weighted displacement of its ``neighbours`` nearest
+        tracks at frame 0 (among those where ``use`` [N_tracks] bool is set; default all)."""
+        from scipy.spatial import cKDTree
+
+        pos = self.positions.double().numpy()
+        if use is not None:
+            pos = pos[:, np.asarray(use, bool)]
+        if pos.shape[1] == 0:
+            raise DataError("no tissue track to carry points by")
+        k = min(neighbours, pos.shape[1])
+        dist, nn = cKDTree(pos[0]).query(np.asarray(points, float), k=k)
+        dist, nn = dist.reshape(len(points), k), nn.reshape(len(points), k)
+        w = 1.0 / np.maximum(dist, 1e-6) ** 2
+        w /= w.sum(1, keepdims=True)
+        return points[None] + np.einsum("nk,tnkc->tnc", w, pos[:, nn] - pos[0][nn])
+
 
 def sample_tracks(object_ids: torch.Tensor, opacities: torch.Tensor, tissue_ids: list[int],
                   max_tracks: int = MAX_TRACKS, min_opacity: float = 0.5) -> torch.Tensor:
