@@ -620,3 +620,47 @@ def test_grasp_matches_the_pure_pytorch_reference_solver():
     disp = res.positions[-1].double() - parts.x.double()
     assert disp_ref[:, 2].mean() > 2e-4  # the block was lifted
     assert (disp - disp_ref).abs().max() < 2e-3 * disp_ref.abs().max(), (disp - disp_ref).abs().max()
+
+
+def _slab_moved_by_its_ends(shift: float, frames: int = 20, still: bool = False):
+    """The 6-mm slab of :func:`_slab_and_capsule` whose end bands are a :class:`MovingAnchor` translated
+    ``shift`` metres along z over the first 6 frames, then held (or, ``still``, the same anchor held still)."""
+    from endogsim.physics import MovingAnchor
+
+    parts = Particles.box((0.03, 0.04, 0.05), (0.07, 0.06, 0.056), 0.001)
+    x = parts.x.double()
+    ends = torch.nonzero((x[:, 0] < 0.034) | (x[:, 0] > 0.066)).flatten()
+    path = x[ends][None].repeat(frames, 1, 1)
+    path[:, :, 2] += shift * torch.clamp(torch.arange(frames, dtype=torch.float64) / 6, max=1.0)[:, None]
+    anchor = MovingAnchor(ends, path, radius=0.00045)
+    scen = Scenario(BOX, moving_anchors=[anchor.still(frames) if still else anchor])
+    res = simulate(parts, _mats(4e4, 0.4), scen, MPMConfig(grid_res=50, damping=20.0), frames)
+    return parts, ends, path, res
+
+
+def test_a_moving_anchor_carries_its_particles_and_the_tissue_between_them():
+    parts, ends, path, res = _slab_moved_by_its_ends(0.002)
+    # Held particles are on their paths (a Dirichlet condition); the slab between follows: the ends moved it
+    # rigidly, so at rest it is the slab translated (the middle within 5% of the shift after 14 frames held).
+    assert torch.allclose(res.positions[:, ends].double(), path, atol=1e-6)
+    middle = (parts.x[:, 0] - 0.05).abs() < 0.004
+    dz = (res.positions[-1] - parts.x)[middle, 2]
+    assert 0.0019 < float(dz.mean()) < 0.0021, float(dz.mean())
+    # Held still, the same anchor holds the slab where it is.
+    parts, ends, path, res = _slab_moved_by_its_ends(0.002, still=True)
+    assert float((res.positions - parts.x).abs().max()) < 1e-4
+
+
+def test_a_moving_anchor_refuses_particles_an_instrument_holds():
+    from endogsim.physics import MovingAnchor
+
+    parts = Particles.box((0.04, 0.04, 0.04), (0.05, 0.05, 0.05), 0.0015)
+    idx = torch.arange(5)
+    path = parts.x[idx].double()[None].repeat(3, 1, 1)
+    tf = np.tile(np.eye(4), (3, 1, 1))
+    col = RigidCollider(points=np.zeros((1, 3)) + 0.045, transforms=tf, holds=idx)
+    scen = Scenario(BOX, colliders=[col], moving_anchors=[MovingAnchor(idx, path, radius=0.001)])
+    with pytest.raises(SimulationError, match="moving anchor"):
+        simulate(parts, _mats(), scen, MPMConfig(grid_res=32), 3)
+    with pytest.raises(SimulationError, match="MovingAnchor.positions"):
+        MovingAnchor(idx, path[:, :3], radius=0.001)

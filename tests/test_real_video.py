@@ -494,3 +494,48 @@ def test_which_real_instruments_grasp_is_a_checked_choice():
     assert RealScenario().grasping == "graspers"
     with pytest.raises(DataError, match="grasping 'some'"):
         RealScenario(grasping="some")
+
+
+def test_tissue_tracks_carry_points_by_the_nearest_tracks():
+    from endogsim.scene.tracks import TissueTracks
+
+    T = 4
+    start = torch.tensor([[0.0, 0.0, 0.05], [0.01, 0.0, 0.05], [0.0, 0.01, 0.05]], dtype=torch.float64)
+    shift = torch.tensor([0.0, 0.0, 0.001], dtype=torch.float64) * torch.arange(T)[:, None]
+    tracks = TissueTracks(torch.arange(3), (start[None] + shift[:, None]).float())
+    points = np.array([[0.004, 0.003, 0.052], [0.0, 0.0, 0.05]])
+    path = tracks.carry(points)
+    # Every track translates alike: any point is carried by the same translation; one on a track by its own.
+    np.testing.assert_allclose(path - points[None], shift.numpy()[:, None].repeat(2, 1), atol=1e-7)
+    tracks.positions[:, 1, 0] += 0.002 * torch.arange(T)  # the second track moves on its own
+    path = tracks.carry(points[1:], use=np.array([False, True, True]))
+    assert path[-1, 0, 0] > 0 and tracks.carry(points[1:])[-1, 0, 0] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(DataError, match="no tissue track"):
+        tracks.carry(points, use=np.zeros(3, bool))
+
+
+def test_a_real_scene_moves_its_border_along_the_tracks_and_an_interaction_holds_it_still(validated, tmp_path):
+    import shutil
+
+    from endogsim.pipeline.simulate import Interaction, build_interaction
+    from endogsim.scene.folder import load_sim_scene
+
+    _, run, _ = validated
+    p = load_sim_scene(run / "scene")
+    (anchor,) = p.scenario.moving_anchors
+    assert len(anchor.particles) > 0 and anchor.positions.shape == (p.num_frames, len(anchor.particles), 3)
+    # The band's particles are not also pinned, and start where they are.
+    assert not p.scenario.pinned(p.particles.x.double().numpy())[anchor.particles.numpy()].any()
+    torch.testing.assert_close(anchor.positions[0], p.particles.x[anchor.particles].double(), atol=1e-6, rtol=0)
+    spec = {"frames": p.num_frames + 3, "force": {"at": [0.0, 0.0], "acceleration": [0.0, 0.0, 1.0]}}
+    inter, _ = build_interaction(p, Interaction.model_validate(spec))
+    (still,) = inter.scenario.moving_anchors
+    assert still.positions.shape[0] == p.num_frames + 3 and float((still.positions - anchor.positions[0]).abs().max()) == 0
+    # A scene that asks for it without tracks is refused, naming the folder and the missing file.
+    copy = tmp_path / "scene"
+    shutil.copytree(run / "scene", copy)
+    doc = json.loads((copy / "scene.json").read_text())
+    doc["files"].pop("tracks")
+    (copy / "scene.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError, match="border_motion 'tracked' needs the reconstruction's tissue tracks"):
+        load_sim_scene(copy)
