@@ -494,6 +494,13 @@ def test_which_real_instruments_grasp_is_a_checked_choice():
     assert RealScenario().grasping == "graspers"
     with pytest.raises(DataError, match="grasping 'some'"):
         RealScenario(grasping="some")
+    from endogsim.scene.schema import ObjectBoundary
+
+    assert RealScenario().border_motion == "tracked" and ObjectBoundary.from_json({}).border_motion == "still"
+    with pytest.raises(DataError, match="border_motion 'wiggle'"):
+        RealScenario(border_motion="wiggle")
+    with pytest.raises(DataError, match="border_motion 'wiggle'"):
+        ObjectBoundary.from_json({"border_motion": "wiggle"})
 
 
 def test_tissue_tracks_carry_points_by_the_nearest_tracks():
