@@ -363,10 +363,12 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     assert set(res) >= {"clip", "train_frames", "test_frames", "prediction", "baselines", "materials", "identifiable",
                         "seconds"}
     assert res["train_frames"] == 4 and res["test_frames"] == 2
-    assert set(res["baselines"]) == {"prior", "zero_motion", "reconstruction"}
+    # The real-video scenario moves the border along the tracks, so the kinematic baseline of that drive is there.
+    assert set(res["baselines"]) == {"prior", "zero_motion", "border_interpolation", "reconstruction"}
     for v in [res["prediction"], *res["baselines"].values()]:
         assert set(v) == {"epe", "psnr_masked"} and all(np.isfinite(x) for x in v.values())
-    for k in ("prior", "zero_motion"):  # whether the prediction wins, tested against the frame-to-frame noise
+    assert set(res["comparison"]) == {"prior", "zero_motion", "border_interpolation"}
+    for k in res["comparison"]:  # whether the prediction wins, tested against the frame-to-frame noise
         c = res["comparison"][k]
         assert c["epe"]["frames"] == 2 and c["mse"]["frames"] == 2 and res["beats"][k] in (True, False)
         assert res["beats"][k] == all(c[w]["z"] < -c[w]["significant_z"] and c[w]["relative"] <= -1e-3
@@ -525,6 +527,7 @@ def test_a_real_scene_moves_its_border_along_the_tracks_and_an_interaction_holds
     import shutil
 
     from endogsim.pipeline.simulate import Interaction, build_interaction
+    from endogsim.pipeline.validate import border_interpolation
     from endogsim.scene.folder import load_sim_scene
 
     _, run, _ = validated
@@ -536,6 +539,10 @@ def test_a_real_scene_moves_its_border_along_the_tracks_and_an_interaction_holds
     torch.testing.assert_close(anchor.positions[0], p.particles.x[anchor.particles].double(), atol=1e-6, rtol=0)
     spec = {"frames": p.num_frames + 3, "force": {"at": [0.0, 0.0], "acceleration": [0.0, 0.0, 1.0]}}
     inter, _ = build_interaction(p, Interaction.model_validate(spec))
+    # The kinematic baseline of the same drive: the band on its paths, every other particle carried by it.
+    moved = border_interpolation(p)
+    torch.testing.assert_close(moved[:, anchor.particles], anchor.positions.float(), atol=1e-6, rtol=0)
+    assert moved.shape == (p.num_frames, len(p.particles), 3) and border_interpolation(inter) is not None
     (still,) = inter.scenario.moving_anchors
     assert still.positions.shape[0] == p.num_frames + 3 and float((still.positions - anchor.positions[0]).abs().max()) == 0
     # A scene that asks for it without tracks is refused, naming the folder and the missing file.
