@@ -131,8 +131,8 @@ class SceneParticles:
 
     def moving_anchors(self, tracks: TissueTracks, track_objects: np.ndarray, dx: float) -> list[MovingAnchor]:
         """One :class:`~endogsim.physics.MovingAnchor` per object whose border follows the tracks: its band's
-        particles carried by the object's own tracks (:meth:`TissueTracks.carry`), the nodes within 0.45 dx
-        of them (a collider's contact radius) moving with them.
+        particles carried by the object's own tracks (:meth:`TissueTracks.carry`; all tracks, warned, for an
+        object without any), the nodes within 0.45 dx of them (a collider's contact radius) moving with them.
 
         Args:
             tracks: the reconstruction's tissue tracks; track_objects: [N_tracks] object id of each.
@@ -145,8 +145,10 @@ class SceneParticles:
         for oid in np.unique(ids[tracked]):
             idx = np.nonzero(tracked & (ids == oid))[0]
             use = np.asarray(track_objects) == oid
-            if not use.any():
-                raise DataError(f"object {int(oid)}'s border follows the tissue tracks, but none is on it")
+            if not use.any():  # a sliver without opaque Gaussians: carried by its neighbours' tracks
+                warnings.warn(f"object {int(oid)} has no tissue track of its own; its border follows the nearest "
+                              "tracks of the other objects", DataWarning, stacklevel=2)
+                use = None
             out.append(MovingAnchor(idx, tracks.carry(x[idx], use), radius=0.45 * dx))
         return out
 
