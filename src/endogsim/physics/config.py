@@ -273,10 +273,6 @@ class MovingAnchor:
         """The same particles held where they are at frame 0 for ``frames`` frames."""
         return replace(self, positions=self.positions[:1].expand(frames, -1, -1).clone())
 
-    def collider(self) -> RigidCollider:
-        """The held particles' paths as collider points (the nodes around them take their velocity)."""
-        return RigidCollider(positions=self.positions, radius=self.radius)
-
 
 @dataclass
 class Scenario:

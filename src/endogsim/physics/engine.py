@@ -237,42 +237,42 @@ class MPMEngine:
         def to_sim(traj: torch.Tensor) -> torch.Tensor:
             return ((traj - torch.tensor(self.box.lo, dtype=torch.float64)) * s).float()
 
+        def add_collider(traj: torch.Tensor, radius: float) -> None:
+            """Collider points on paths ``traj`` [T, Pc, 3] (world), nodes within ``radius`` (sim units)."""
+            traj_sim = to_sim(traj)
+            self.colliders.append(([wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev)
+                                    for t in range(num_frames)], float(radius)))
+
+        def hold(idx: np.ndarray, paths: torch.Tensor, what: str) -> None:
+            """Particles ``idx`` [N] held on ``paths`` [T, N, 3] (world; a Dirichlet condition in g2p_update)."""
+            if len(idx) and (idx.min() < 0 or idx.max() >= self.P):
+                raise SimulationError(f"{what} has particle indices outside [0, {self.P})")
+            if (held_index[idx] >= 0).any() or pinned[idx].any():
+                raise SimulationError(f"a particle of {what} is also held by another instrument or moving anchor, "
+                                      "or anchored")
+            held_index[idx] = sum(len(h) for h in held_traj) + np.arange(len(idx), dtype=np.int32)
+            held_traj.append(paths[:num_frames].permute(1, 0, 2))
+
         for c in scenario.colliders:
             traj = c.trajectory()
             if traj.shape[0] < num_frames:
                 raise SimulationError(f"a collider trajectory has {traj.shape[0]} frames, the rollout needs {num_frames}")
             if c.holds is not None and len(c.holds):
                 idx = c.holds.numpy()
-                if idx.min() < 0 or idx.max() >= self.P:
-                    raise SimulationError(f"RigidCollider.holds has particle indices outside [0, {self.P})")
-                if (held_index[idx] >= 0).any() or pinned[idx].any():
-                    raise SimulationError("a particle is held by two instruments, or held and anchored")
                 moved = c.moved(torch.from_numpy(x0_world[idx]), from_first=True)[:traj.shape[0]]
-                held_index[idx] = sum(len(h) for h in held_traj) + np.arange(len(idx), dtype=np.int32)
-                held_traj.append(moved.permute(1, 0, 2))
+                hold(idx, moved, "RigidCollider.holds")
                 traj = torch.cat([traj, moved], 1)
-            traj_sim = to_sim(traj)
-            radius = (c.radius * s) if c.radius is not None else 1.0 / self.inv_dx
-            frames = [wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
-            self.colliders.append((frames, float(radius)))
+            add_collider(traj, (c.radius * s) if c.radius is not None else 1.0 / self.inv_dx)
         for a in scenario.moving_anchors:  # held on their own paths; the nodes around them take their velocity
-            traj = a.positions[:num_frames]
-            if traj.shape[0] < num_frames:
-                raise SimulationError(f"a moving anchor has {traj.shape[0]} frames, the rollout needs {num_frames}")
-            idx = a.particles.numpy()
-            if len(idx) and (idx.min() < 0 or idx.max() >= self.P):
-                raise SimulationError(f"MovingAnchor.particles has indices outside [0, {self.P})")
-            if (held_index[idx] >= 0).any() or pinned[idx].any():
-                raise SimulationError("a particle of a moving anchor is also held by an instrument or anchored")
-            held_index[idx] = sum(len(h) for h in held_traj) + np.arange(len(idx), dtype=np.int32)
-            held_traj.append(traj.permute(1, 0, 2))
-            traj_sim = to_sim(traj)
-            self.colliders.append(([wp.array(traj_sim[t].numpy(), dtype=wp.vec3, device=dev)
-                                    for t in range(num_frames)], float(a.radius * s)))
+            if a.positions.shape[0] < num_frames:
+                raise SimulationError(f"a moving anchor has {a.positions.shape[0]} frames, the rollout needs "
+                                      f"{num_frames}")
+            hold(a.particles.numpy(), a.positions, "MovingAnchor.particles")
+            add_collider(a.positions[:num_frames], a.radius * s)
         pm.held = wp.from_numpy(held_index, dtype=wp.int32, device=dev)
         held_sim = torch.zeros(num_frames, 1, 3)
         if held_traj:
-            held_sim = to_sim(torch.cat([h[:, :num_frames] for h in held_traj]).permute(1, 0, 2))
+            held_sim = to_sim(torch.cat(held_traj).permute(1, 0, 2))
         self.held_frames = [wp.array(held_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
 
     # -- set-up ----------------------------------------------------------------------------------------

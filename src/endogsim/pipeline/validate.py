@@ -59,18 +59,17 @@ METHODS = ("prediction", "prior", "zero_motion", "border_interpolation", "recons
 def border_interpolation(scene) -> torch.Tensor | None:
     """[T, P, 3] particle positions (metres) moved by the scene's tracked border alone, without physics: each
     particle by the inverse-square-distance mean of the motion of its 8 nearest band particles (every
-    object's band together; :meth:`~endogsim.scene.tracks.TissueTracks.carry`), the band's own particles on
+    object's band together; :func:`~endogsim.scene.tracks.carry_by`), the band's own particles on
     their paths. None for a scene whose border holds still (no ``moving_anchors``)."""
-    from endogsim.scene.tracks import TissueTracks
+    from endogsim.scene.tracks import carry_by
 
     moving = scene.scenario.moving_anchors
     if not moving:
         return None
-    band = torch.cat([a.particles for a in moving])
-    band_paths = torch.cat([a.positions[:scene.num_frames] for a in moving], 1)
-    x = scene.particles.x.double().numpy()
-    out = TissueTracks(band, band_paths).carry(x)
-    out[:, band.numpy()] = band_paths.numpy()
+    band = torch.cat([a.particles for a in moving]).numpy()
+    band_paths = torch.cat([a.positions[:scene.num_frames] for a in moving], 1).numpy()
+    out = carry_by(band_paths, scene.particles.x.double().numpy())
+    out[:, band] = band_paths
     return torch.from_numpy(out).float()
 
 

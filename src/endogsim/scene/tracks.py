@@ -25,7 +25,7 @@ import torch
 from endogsim.errors import DataError
 from endogsim.io.atomic import save_npz_atomic
 
-__all__ = ["TissueTracks", "MAX_TRACKS", "sample_tracks", "write_tissue_tracks", "read_tissue_tracks"]
+__all__ = ["TissueTracks", "MAX_TRACKS", "carry_by", "sample_tracks", "write_tissue_tracks", "read_tissue_tracks"]
 
 #: Tracked Gaussians kept per scene: enough to cover the tissue at a few pixels' spacing, few enough that
 #: the file and the term stay small (a 63-frame clip: 3 MB).
@@ -50,22 +50,25 @@ class TissueTracks:
 
     def carry(self, points: np.ndarray, use: np.ndarray | None = None, neighbours: int = 8) -> np.ndarray:
         """[T, N, 3] paths of world points ``points`` [N, 3] (metres, where they are at frame 0) moved by
-        the tracks: each by the inverse-square-distance weighted displacement of its ``neighbours`` nearest
-        tracks at frame 0 (among those where ``use`` [N_tracks] bool is set; default all)."""
-        from scipy.spatial import cKDTree
-
+        these tracks (:func:`carry_by`; only those where ``use`` [N_tracks] bool is set; default all)."""
         pos = self.positions.double().numpy()
-        if use is not None:
-            pos = pos[:, np.asarray(use, bool)]
-        if pos.shape[1] == 0:
-            raise DataError("no tissue track to carry points by")
-        k = min(neighbours, pos.shape[1])
-        dist, nn = cKDTree(pos[0]).query(np.asarray(points, float), k=k)
-        dist, nn = dist.reshape(len(points), k), nn.reshape(len(points), k)
-        w = 1.0 / np.maximum(dist, 1e-6) ** 2
-        w /= w.sum(1, keepdims=True)
-        return points[None] + np.einsum("nk,tnkc->tnc", w, pos[:, nn] - pos[0][nn])
+        return carry_by(pos if use is None else pos[:, np.asarray(use, bool)], points, neighbours)
 
+
+def carry_by(paths: np.ndarray, points: np.ndarray, neighbours: int = 8) -> np.ndarray:
+    """[T, N, 3] paths of points ``points`` [N, 3] (metres, where they are at frame 0) carried by other points'
+    ``paths`` [T, M, 3]: each by the inverse-square-distance weighted displacement of its ``neighbours``
+    nearest of them at frame 0."""
+    from scipy.spatial import cKDTree
+
+    if paths.shape[1] == 0:
+        raise DataError("no tissue track to carry points by")
+    k = min(neighbours, paths.shape[1])
+    dist, nn = cKDTree(paths[0]).query(np.asarray(points, float), k=k)
+    dist, nn = dist.reshape(len(points), k), nn.reshape(len(points), k)
+    w = 1.0 / np.maximum(dist, 1e-6) ** 2
+    w /= w.sum(1, keepdims=True)
+    return points[None] + np.einsum("nk,tnkc->tnc", w, paths[:, nn] - paths[0][nn])
 
 def sample_tracks(object_ids: torch.Tensor, opacities: torch.Tensor, tissue_ids: list[int],
                   max_tracks: int = MAX_TRACKS, min_opacity: float = 0.5) -> torch.Tensor:
