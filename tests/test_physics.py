@@ -543,6 +543,27 @@ def test_grasped_tissue_moves_with_the_instrument():
     assert 2e-3 < profile[3] < 4e-3 and abs(profile[0]) < 1e-4
 
 
+def test_replayed_launches_give_the_rollout_of_plain_launches(monkeypatch):
+    """An untaped rollout replays each kernel launch recorded at its first substep, repacking only the
+    arguments that changed (engine.Replays): the same kernels with the same arguments, so the trajectory
+    and F equal those of plain launches to the last bit (a grasping instrument moves: collider, held
+    particles and per-substep arguments all change)."""
+    import warp as wp
+
+    from endogsim.physics import engine
+
+    _, parts, _, replayed = _grasp_lift(50, frames=4)
+
+    class Plain(engine.Replays):
+        def launch(self, key, kernel, dim, inputs):
+            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    monkeypatch.setattr(engine, "Replays", Plain)
+    _, _, _, plain = _grasp_lift(50, frames=4)
+    assert torch.equal(replayed.positions, plain.positions) and torch.equal(replayed.F, plain.F)
+    assert float((plain.positions[-1] - parts.x).abs().max()) > 1e-3
+
+
 def test_bench_mpm_measures_each_case_at_each_thread_count(tmp_path):
     import json
 
