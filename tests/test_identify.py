@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import json
 import math
 
@@ -215,6 +217,24 @@ def test_interrupted_run_resumes_to_the_same_result(run3, problem, tmp_path):
     # Other settings than the checkpoint's are refused, not silently mixed.
     with pytest.raises(DataError, match="other settings \\(option loss\\)"):  # named, so a user knows which
         identify(problem, init, fast_config(loss="render"), run_dir=tmp_path)
+
+
+def test_a_resumed_run_takes_the_intervals_trials_from_its_checkpoint(problem, tmp_path, monkeypatch):
+    """The intervals' trial simulations are kept in the checkpoint as each finishes: a run resumed after them
+    (validate run again in its folder, an identify interrupted during its intervals) simulates only the
+    optimum again (alone, first), and its intervals are the first run's to the last bit."""
+    from endogsim.identify import optimize
+
+    init, cfg = field_from_truth(problem, 2.0), fast_config(iters=1, intervals=True, coarse_factor=0.7)
+    first = identify(problem, init, cfg, run_dir=tmp_path)
+    trials = torch.load(tmp_path / "checkpoint.pt", weights_only=False)["trials"]
+    assert sum(k[0] == "fine" for k in trials) >= 4 and any(k[0] == "coarse" for k in trials)
+    simulated = []
+    real = optimize.evaluate_loss
+    monkeypatch.setattr(optimize, "evaluate_loss", lambda *a, **k: simulated.append(k["grad"]) or real(*a, **k))
+    again = identify(problem, init, cfg, run_dir=tmp_path)
+    assert simulated == [False]
+    assert [asdict(i) for i in again.intervals] == [asdict(i) for i in first.intervals]
 
 
 def test_a_time_budget_only_stops_the_run(run3, problem, tmp_path):

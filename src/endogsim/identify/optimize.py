@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -323,6 +325,8 @@ def identify(
 
     start, history, best, seconds, stale, flat_run = 0, [], None, 0.0, 0, 0
     ckpt_path = None if run_dir is None else run_dir / CHECKPOINT_NAME
+    ck = None  # the checkpoint as last written or read
+    trials: dict = {}  # the intervals' trial simulations done so far (remembered_trials)
     if ckpt_path is not None and ckpt_path.is_file() and resume:
         ck = torch.load(ckpt_path, weights_only=False)
         stored = _stored_signature(ck.get("signature"), ckpt_path.parent)
@@ -336,6 +340,7 @@ def identify(
         opt.load_state_dict(ck["optimizer"])
         start, history, best, seconds, stale = ck["iteration"], ck["history"], ck["best"], ck["seconds"], ck["stale"]
         flat_run = ck.get("flat_run", 0)
+        trials = ck.setdefault("trials", {})
 
     stopped = "iters" if cfg.iters > 0 else "no_iterations"
     if history and history[-1].get("converged"):
@@ -391,10 +396,11 @@ def identify(
         history.append(rec)
         done_here += 1
         if ckpt_path is not None:
-            save_torch_atomic({"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
-                                "log10_E": params.log10_E.detach().clone(), "nu_raw": params.nu_raw.detach().clone(),
-                                "optimizer": opt.state_dict(), "history": history, "best": best,
-                                "seconds": seconds, "stale": stale, "flat_run": flat_run}, ckpt_path)
+            ck = {"version": _CKPT_VERSION, "signature": sig, "iteration": k + 1,
+                  "log10_E": params.log10_E.detach().clone(), "nu_raw": params.nu_raw.detach().clone(),
+                  "optimizer": opt.state_dict(), "history": history, "best": best,
+                  "seconds": seconds, "stale": stale, "flat_run": flat_run, "trials": trials}
+            save_torch_atomic(ck, ckpt_path)
         if progress is not None:
             progress(k + 1, cfg.iters, rec)
         if rec["converged"]:
@@ -415,6 +421,8 @@ def identify(
             final.log10_E.copy_(best["log10_E"])
             final.nu_raw.copy_(best["nu_raw"])
         if cfg.intervals:
+            remember = partial(remembered_trials, trials=trials, lock=threading.Lock(),
+                               save=None if ck is None else partial(save_torch_atomic, ck, ckpt_path))
             coarse, coarse_evaluate = None, None
             if cfg.coarse_factor is not None:
                 try:
@@ -423,27 +431,32 @@ def identify(
                     notes.append(f"the discretisation error was not measured: the scene at {cfg.coarse_factor:g}x "
                                  f"its grid could not be built ({e})")
                 else:
-                    coarse_evaluate = lambda trial: evaluate_loss(  # noqa: E731
-                        coarse, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame
+                    coarse_evaluate = remember(lambda trial: evaluate_loss(
+                        coarse, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame,
+                        ("coarse", cfg.coarse_factor, cfg.device))
             workers = problem.independent_simulations()
 
             def evaluate_implied(slices: list[ParameterInterval]) -> None:
                 fld = identified_field(init_field, final, slices)
                 evaluated.update(field=fld, evaluation=evaluate(fld, simulations))
 
+            def fine(trial: MaterialParams) -> dict[int, float]:
+                return evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame
+
+            # The optimum's loss from its iteration when this process ran one (its kernels are then built: the
+            # trials may start side by side); a run resumed with nothing left to iterate, or from an older
+            # checkpoint, simulates it first, alone (never from the remembered trials, for the same reason).
+            reference = best.get("per_frame") if done_here else None
+            if reference is None:
+                reference = fine(final)
             intervals = parameter_intervals(
-                final, {o: problem.labels[o].name for o in final.object_ids},
-                lambda trial: evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame,
+                final, {o: problem.labels[o].name for o in final.object_ids}, remember(fine, ("fine", cfg.device)),
                 lambda trial: ([math.log10(cfg.E_min)] * trial.log10_E.shape[0],
                                stable_log10_E_max(problem, trial.nu(), _slot_density(problem, init_field, trial), cfg).tolist()),
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
-                workers=workers,
-                # The optimum's loss from its iteration when this process ran one (its kernels are then
-                # built: the trials may start side by side); a run resumed with nothing left to iterate, or
-                # from an older checkpoint, evaluates it first, alone.
-                reference=best.get("per_frame") if done_here else None,
+                workers=workers, reference=reference,
                 then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
                 min_relative_rise=cfg.tol)
         ident = identified_field(init_field, final, intervals)
@@ -453,6 +466,30 @@ def identify(
                           best_loss=math.nan if best is None else float(best["loss"]),
                           iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
                           evaluation=evaluation, simulations=simulations)
+
+
+def remembered_trials(evaluate: Callable[[MaterialParams], dict[int, float]], tag: tuple, trials: dict,
+                      lock: threading.Lock, save: Callable[[], object] | None = None,
+                      ) -> Callable[[MaterialParams], dict[int, float]]:
+    """``evaluate`` (trial parameters -> per-frame loss) with every result kept in ``trials`` under (``tag``,
+    log10 E, raw nu) and, through ``save``, in the checkpoint once it is computed: a resumed run (an
+    interrupted ``identify``, or ``validate`` run again in its folder) takes a trial from there instead of
+    simulating it again, and gets the same numbers (a simulation is deterministic). ``tag`` names what else
+    the result depends on (the discretisation, the device); ``lock`` guards ``trials`` and the saving, for
+    trials run side by side."""
+    def trial(params: MaterialParams) -> dict[int, float]:
+        key = (*tag, tuple(params.log10_E.detach().tolist()), tuple(params.nu_raw.detach().tolist()))
+        with lock:
+            if key in trials:
+                return dict(trials[key])
+        per_frame = evaluate(params)
+        with lock:
+            trials[key] = dict(per_frame)
+            if save is not None:
+                save()
+        return per_frame
+
+    return trial
 
 
 def same_simulation(a: MaterialField, b: MaterialField) -> bool:
