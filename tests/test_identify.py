@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import json
 import math
+from dataclasses import asdict
 
 import numpy as np
 import pytest
