@@ -421,6 +421,10 @@ def identify(
             final.log10_E.copy_(best["log10_E"])
             final.nu_raw.copy_(best["nu_raw"])
         if cfg.intervals:
+            def losses(pb: SimScene) -> Callable[[MaterialParams], dict[int, float]]:
+                """Trial parameters -> the per-frame loss of ``pb`` (the scene, or its coarser discretisation)."""
+                return lambda trial: evaluate_loss(pb, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame
+
             remember = partial(remembered_trials, trials=trials, lock=threading.Lock(),
                                save=None if ck is None else partial(save_torch_atomic, ck, ckpt_path))
             coarse, coarse_evaluate = None, None
@@ -431,18 +435,14 @@ def identify(
                     notes.append(f"the discretisation error was not measured: the scene at {cfg.coarse_factor:g}x "
                                  f"its grid could not be built ({e})")
                 else:
-                    coarse_evaluate = remember(lambda trial: evaluate_loss(
-                        coarse, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame,
-                        ("coarse", cfg.coarse_factor, cfg.device))
+                    coarse_evaluate = remember(losses(coarse), ("coarse", cfg.coarse_factor, cfg.device))
             workers = problem.independent_simulations()
 
             def evaluate_implied(slices: list[ParameterInterval]) -> None:
                 fld = identified_field(init_field, final, slices)
                 evaluated.update(field=fld, evaluation=evaluate(fld, simulations))
 
-            def fine(trial: MaterialParams) -> dict[int, float]:
-                return evaluate_loss(problem, init_field, trial, obs, cam, cfg, grad=False)[0].per_frame
-
+            fine = losses(problem)
             # The optimum's loss from its iteration when this process ran one (its kernels are then built: the
             # trials may start side by side); a run resumed with nothing left to iterate, or from an older
             # checkpoint, simulates it first, alone (never from the remembered trials, for the same reason).
