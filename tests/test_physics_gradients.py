@@ -209,6 +209,68 @@ def test_hand_written_transfer_adjoints_match_pytorch_autograd():
     assert not wp.to_torch(a_v).any() and not wp.to_torch(a_C).any()
 
 
+def test_hand_written_elastic_update_adjoint_equals_warps_generated_one():
+    """The hand-written adjoint of g2p_update without plasticity (physics/transfer_adjoints.py) gives the
+    adjoints of the old state and of the gathered v and C that Warp's generated adjoint gives, to the last
+    bit, for free, pinned and held particles and for coordinates clamped to the padded box (and at its
+    edges); both consume (zero) the new state's adjoints."""
+    import warp as wp
+
+    from endogsim.physics import kernels as K
+    from endogsim.physics import transfer_adjoints as A
+    from endogsim.physics.engine import adjoints_of, alloc_state, alloc_transfer
+
+    g, x, _, _, _, _, d, _, _ = _transfer_case(seed=3, P=64)
+    P = x.shape[0]
+    d.x_lo, d.x_hi = 0.35, 0.65  # some particles start (or land) outside the box: their coordinates clamp
+    x[0, 0], x[1, 1] = 0.35, 0.65  # exactly on the box's edges
+    v, C = torch.randn(P, 3, generator=g), 0.3 * torch.randn(P, 3, 3, generator=g)
+    F = torch.eye(3) + 0.2 * torch.randn(P, 3, 3, generator=g)
+    v[0:2] = 0.0
+    pm = K.ParticleModel()
+    pm.vol, pm.obj = wp.full(P, 1e-3, dtype=float), wp.zeros(P, dtype=wp.int32)
+    pinned, held = torch.zeros(P, dtype=torch.int32), torch.full((P,), -1, dtype=torch.int32)
+    pinned[5:15], held[10:20] = 1, torch.arange(10, dtype=torch.int32)  # pinned, pinned and held, held
+    pm.pinned, pm.held = wp.from_torch(pinned), wp.from_torch(held)
+    pm.force_region = wp.full(P, -1, dtype=wp.int32)
+    mats = K.MaterialTable()
+    mats.E, mats.nu, mats.rho = wp.full(1, 1e3, dtype=float), wp.full(1, 0.3, dtype=float), wp.full(1, 1.0, dtype=float)
+    mats.model, mats.yield_stress = wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=float)
+    hold = K.HeldTargets()
+    hold.x0 = wp.from_torch(0.5 + 0.01 * torch.randn(10, 3, generator=g), dtype=wp.vec3)
+    hold.x1 = wp.from_torch(0.5 + 0.01 * torch.randn(10, 3, generator=g), dtype=wp.vec3)
+    hold.alpha_end, hold.inv_frame_dt = 0.5, 30.0
+    dt = 0.05
+    adj_out = [torch.randn(P, 3, generator=g), torch.randn(P, 3, generator=g), torch.randn(P, 3, 3, generator=g),
+               torch.randn(P, 3, 3, generator=g)]
+
+    results = []
+    for hand in (False, True):
+        s, out = alloc_state(P, "cpu", True), alloc_state(P, "cpu", True)
+        tr = alloc_transfer(P, "cpu", True)
+        for a, t in ((s.x, x), (s.F, F), (tr.v, v), (tr.C, C)):
+            wp.copy(a, wp.from_torch(t.contiguous(), dtype=a.dtype))
+        for a, t in zip((out.x.grad, out.v.grad, out.C.grad, out.F.grad), adj_out):
+            wp.copy(a, wp.from_torch(t.contiguous(), dtype=a.dtype))
+        inputs = [s, pm, mats, d, tr, hold, dt, out]
+        wp.launch(K.g2p_update, dim=P, inputs=inputs, device="cpu")
+        if hand:
+            adjoints = [adjoints_of(s, K.ParticleState), adjoints_of(tr, K.ParticleTransfer),
+                        adjoints_of(out, K.ParticleState)]
+            wp.launch(A.g2p_update_elastic_adjoint, dim=P, device="cpu", inputs=[s, pm, d, tr, dt, out, *adjoints])
+        else:
+            tape = wp.Tape()
+            tape.record_launch(K.g2p_update, P, 0, inputs, [], "cpu")
+            tape.backward()
+        results.append([wp.to_torch(a).clone() for a in (s.x.grad, s.F.grad, tr.v.grad, tr.C.grad, out.x.grad,
+                                                          out.v.grad, out.C.grad, out.F.grad)])
+    names = ("x", "F", "gathered v", "gathered C", "new x", "new v", "new C", "new F")
+    for name, generated, hand in zip(names, *results):
+        assert torch.equal(generated, hand), (name, float((generated - hand).abs().max()))
+    assert results[0][0].abs().sum() > 0 and results[0][2].abs().sum() > 0
+    assert not any(r.any() for r in results[1][4:])  # consumed
+
+
 @pytest.mark.parametrize("mode", ["full", "frame", "last_substep"])
 def test_recomputing_the_next_segment_on_a_second_thread_gives_the_same_gradients(mode, monkeypatch):
     """The backward pass recomputes the next frame's segment on a second thread while this frame's adjoints

@@ -111,8 +111,13 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window_size: int = 11, sigma:
     if pred.shape != gt.shape:
         raise DataError(f"image shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}")
     batched = pred.ndim == 4
-    p = _as_batch(pred).permute(0, 3, 1, 2)
-    g = _as_batch(gt).permute(0, 3, 1, 2).to(p.dtype)
+    s = _ssim_nchw(_as_batch(pred).permute(0, 3, 1, 2), _as_batch(gt).permute(0, 3, 1, 2).to(pred.dtype),
+                   window_size, sigma, data_range)
+    return s if batched else s[0]
+
+
+def _ssim_nchw(p: torch.Tensor, g: torch.Tensor, window_size: int, sigma: float, data_range: float) -> torch.Tensor:
+    """Per-pixel SSIM [B, H, W] of two [B, C, H, W] batches (of any memory layout), averaged over channels."""
     c = p.shape[1]
     # The window is separable: two 1-D passes (2 x 11 taps) equal the 11 x 11 one, zero padding included.
     g1 = gaussian_window(window_size, sigma, p.dtype).to(p.device)[window_size // 2]
@@ -130,17 +135,22 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window_size: int = 11, sigma:
     cov = blur(p * g) - mu_p * mu_g
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     s = ((2 * mu_p * mu_g + c1) * (2 * cov + c2)) / ((mu_p**2 + mu_g**2 + c1) * (var_p + var_g + c2))
-    s = s.mean(1)
-    return s if batched else s[0]
+    return s.mean(1)
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None, window_size: int = 11,
          sigma: float = 1.5, data_range: float = 1.0) -> float:
     """Mean SSIM (float) of two images [H, W, C] / [B, H, W, C]; over ``mask`` pixels when given."""
     p, g, m = _check(pred, gt, mask)
-    # One image at a time: the same map, with the blurs' working set in cache (a 63-frame clip at 640 x 512:
-    # 35 s instead of 60 on a laptop core).
-    s = torch.cat([ssim_map(p[i:i + 1], g[i:i + 1], window_size, sigma, data_range) for i in range(p.shape[0])])
+    # One image at a time (the blurs' working set stays in cache), each copied to a contiguous [1, C, H, W]:
+    # PyTorch's depthwise convolutions on CPU take 4x longer on the channels-last views ssim_map blurs (a
+    # 63-frame clip at 640 x 512: 11 s instead of 35 on a laptop core; the same map up to rounding, 3e-15).
+    # ssim_map, the reconstruction's loss, keeps the views: its numbers are part of every reconstruction.
+    def nchw(x: torch.Tensor) -> torch.Tensor:
+        return x.permute(0, 3, 1, 2).contiguous()
+
+    s = torch.cat([_ssim_nchw(nchw(p[i:i + 1]), nchw(g[i:i + 1]), window_size, sigma, data_range)
+                   for i in range(p.shape[0])])
     if m is None:
         return float(s.mean())
     return float((s * m).sum() / m.sum().clamp_min(1e-12))

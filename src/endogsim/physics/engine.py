@@ -104,6 +104,15 @@ def set_state_grads(s: K.ParticleState, tensors) -> None:
         wp.copy(a.grad, _from_torch(t, a))
 
 
+def adjoints_of(s, struct):
+    """A ``struct`` (a Warp struct of arrays, e.g. :class:`~endogsim.physics.kernels.ParticleState`) of the
+    adjoints of the arrays of ``s`` (one of its instances), for the hand-written adjoint kernels."""
+    adj = struct()
+    for name in struct.vars:
+        setattr(adj, name, getattr(s, name).grad)
+    return adj
+
+
 def alloc_transfer(P: int, device: str, grad: bool) -> K.ParticleTransfer:
     t = K.ParticleTransfer()
     t.mass = wp.zeros(P, dtype=float, device=device, requires_grad=grad)
@@ -384,10 +393,11 @@ class MPMEngine:
 
     def substep(self, s_in: K.ParticleState, s_out: K.ParticleState, buf: GridBuffers, mats: K.MaterialTable,
                 step: Timestep, frame: int, sub: int, tape: wp.Tape | None = None,
-                replays: Replays | None = None) -> None:
+                replays: Replays | None = None, elastic: bool = False) -> None:
         """Advance ``s_in`` by one substep into ``s_out``. On a ``tape``, the stencil transfers record their
-        hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), the rest Warp's generated ones.
-        Without one, ``replays`` (if given) replays the launches recorded at an earlier substep."""
+        hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), and so does the particle update
+        when ``elastic`` (no material of ``mats`` yields); the rest Warp's generated ones. Without a tape,
+        ``replays`` (if given) replays the launches recorded at an earlier substep."""
         dev, dt = self.device, step.dt
 
         def run(kernel, dim, inputs, slot: int = 0) -> None:
@@ -431,7 +441,16 @@ class MPMEngine:
             tape.record_func(lambda: wp.launch(A.g2p_gather_adjoint, dim=self.P, device=dev, inputs=[
                 s_in.x, self.domain, grid, tr, tr.v.grad, tr.C.grad, grid.v.grad, s_in.x.grad], record_tape=False),
                 arrays=[s_in.x, grid.v, tr.v, tr.C])
-        launch(K.g2p_update, self.P, [s_in, self.particles, mats, self.domain, tr, held, dt, s_out])
+        update = [s_in, self.particles, mats, self.domain, tr, held, dt, s_out]
+        if tape is not None and elastic:
+            run(K.g2p_update, self.P, update)
+            adjoints = [adjoints_of(s_in, K.ParticleState), adjoints_of(tr, K.ParticleTransfer),
+                        adjoints_of(s_out, K.ParticleState)]
+            tape.record_func(lambda: wp.launch(A.g2p_update_elastic_adjoint, dim=self.P, device=dev, inputs=[
+                s_in, self.particles, self.domain, tr, dt, s_out, *adjoints], record_tape=False),
+                arrays=[s_in.x, s_in.F, tr.v, tr.C, *state_arrays(s_out)])
+        else:
+            launch(K.g2p_update, self.P, update)
 
     # -- untaped forward ---------------------------------------------------------------------------------
     def forward(self, x0: torch.Tensor, v0: torch.Tensor, mats: K.MaterialTable, step: Timestep,
@@ -505,10 +524,12 @@ class MPMEngine:
                 g.zero_accumulated_grads()
         seg.used = True
         load_state(seg.states[0], start)
+        elastic = not mats.yield_stress.numpy().any()
         tape = wp.Tape()
         try:
             for i, g in enumerate(seg.grids):
-                self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape)
+                self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape,
+                             elastic=elastic)
         except BaseException:
             self.release_buffers()  # never reuse buffers a failed recording left half written
             raise

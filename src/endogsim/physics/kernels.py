@@ -34,7 +34,7 @@ from __future__ import annotations
 import warp as wp
 
 from endogsim.physics.constitutive import MODELS
-from endogsim.physics.polar import polar_rotation, proper_svd_rotations
+from endogsim.physics.polar import newton_polar_rotation, proper_svd_rotations, rotation_with_adjoint
 
 # Per-node boundary condition kinds.
 BC_FREE = 0
@@ -300,7 +300,8 @@ def particle_momentum(
     Fp = state.F[p]
     R = wp.identity(n=3, dtype=float)
     if uses_rotation(model) != 0:
-        R = polar_rotation(Fp)
+        # polar_rotation inline: the adjoint's replay of this kernel then runs the Newton iteration once.
+        R = rotation_with_adjoint(Fp, newton_polar_rotation(Fp))
     tau = kirchhoff_stress(model, Fp, R, ml[0], ml[1])
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * state.C[p]
 

@@ -19,19 +19,15 @@ import warp as wp
 from endogsim.physics.kernels import (
     Domain,
     GridState,
+    ParticleModel,
+    ParticleState,
     ParticleTransfer,
     apic_node_terms,
     bspline_derivatives,
     quadratic_stencil,
 )
 
-__all__ = ["p2g_scatter_adjoint", "g2p_gather_adjoint"]
-
-
-@wp.func
-def weight_gradient(W: wp.mat33, dW: wp.mat33, i: int, j: int, k: int):
-    """d w_ijk / d fx (grid units) of the stencil weight w_ijk = W[i, 0] W[j, 1] W[k, 2]."""
-    return wp.vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+__all__ = ["p2g_scatter_adjoint", "g2p_gather_adjoint", "g2p_update_elastic_adjoint"]
 
 
 @wp.kernel(enable_backward=False)
@@ -47,7 +43,13 @@ def p2g_scatter_adjoint(
     adj_affine: wp.array(dtype=wp.mat33),
 ):
     """Adjoint of :func:`~endogsim.physics.kernels.p2g_scatter`: from the adjoints of the node momenta and
-    masses to those of the particle's position (added to), mass, momentum and affine momentum (set)."""
+    masses to those of the particle's position (added to), mass, momentum and affine momentum (set).
+
+    Node ijk received w_ijk (q_ij + k a2) and w_ijk m, with w_ijk = Wx_i Wy_j Wz_k and q_ij = q + i a0 + j a1
+    (:func:`~endogsim.physics.kernels.apic_node_terms`). Every sum over the stencil factors along the axes:
+    the innermost loop only sums the node adjoints (g_mv, g_m) weighted by Wz_k and by dWz_k (and k times
+    both); each row ij then contributes through its weights Wx_i Wy_j and their derivatives. The same sums
+    as node by node, in a fifth of the arithmetic."""
     p = wp.tid()
     inv_dx = domain.inv_dx
     base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
@@ -57,7 +59,6 @@ def p2g_scatter_adjoint(
     dx = 1.0 / inv_dx
     q, a0, a1, a2 = apic_node_terms(transfer.momentum[p], affine, fx, dx)
 
-    # Node ijk received w_ijk (q + i a0 + j a1 + k a2) and w_ijk m.
     g_q = wp.vec3(0.0)
     g_a0 = wp.vec3(0.0)
     g_a1 = wp.vec3(0.0)
@@ -66,18 +67,35 @@ def p2g_scatter_adjoint(
     g_fx = wp.vec3(0.0)
     for i in range(3):
         for j in range(3):
+            # Row ij: sums over k of the node adjoints weighted by Wz_k (t, m) and dWz_k (tb, mb); u, ub: k times.
+            t = wp.vec3(0.0)
+            u = wp.vec3(0.0)
+            tb = wp.vec3(0.0)
+            ub = wp.vec3(0.0)
+            m = float(0.0)
+            mb = float(0.0)
             for k in range(3):
                 g_mv = adj_grid_mv[base[0] + i, base[1] + j, base[2] + k]
                 g_m = adj_grid_m[base[0] + i, base[1] + j, base[2] + k]
-                w = W[i, 0] * W[j, 1] * W[k, 2]
-                wg = w * g_mv
-                g_q = g_q + wg
-                g_a0 = g_a0 + float(i) * wg
-                g_a1 = g_a1 + float(j) * wg
-                g_a2 = g_a2 + float(k) * wg
-                g_mass = g_mass + w * g_m
-                g_w = wp.dot(g_mv, q + float(i) * a0 + float(j) * a1 + float(k) * a2) + g_m * mass
-                g_fx = g_fx + g_w * weight_gradient(W, dW, i, j, k)
+                t = t + W[k, 2] * g_mv
+                tb = tb + dW[k, 2] * g_mv
+                m = m + W[k, 2] * g_m
+                mb = mb + dW[k, 2] * g_m
+                if k > 0:
+                    u = u + (float(k) * W[k, 2]) * g_mv
+                    ub = ub + (float(k) * dW[k, 2]) * g_mv
+            wij = W[i, 0] * W[j, 1]
+            wt = wij * t
+            g_q = g_q + wt
+            g_a0 = g_a0 + float(i) * wt
+            g_a1 = g_a1 + float(j) * wt
+            g_a2 = g_a2 + wij * u
+            g_mass = g_mass + wij * m
+            # d loss / d w_ijk = g_mv . (q_ij + k a2) + g_m m, summed against Wz_k (a) and dWz_k (b).
+            q_ij = q + float(i) * a0 + float(j) * a1
+            a = wp.dot(t, q_ij) + wp.dot(u, a2) + m * mass
+            b = wp.dot(tb, q_ij) + wp.dot(ub, a2) + mb * mass
+            g_fx = g_fx + wp.vec3(dW[i, 0] * W[j, 1] * a, W[i, 0] * dW[j, 1] * a, wij * b)
     # q = momentum - dx A fx; a_c = dx A[:, c].
     g_fx = g_fx - dx * (wp.transpose(affine) * g_q)
     g_affine = dx * (wp.matrix_from_cols(g_a0, g_a1, g_a2) - wp.outer(g_q, fx))
@@ -101,7 +119,8 @@ def g2p_gather_adjoint(
 ):
     """Adjoint of :func:`~endogsim.physics.kernels.g2p_gather`: from the adjoints of the gathered velocity
     and C (read, then zeroed: they are consumed, as Warp does for arrays a kernel writes) to those of the
-    node velocities and the particle's position (added to)."""
+    node velocities and the particle's position (added to). The position's sum factors along the axes as
+    in :func:`p2g_scatter_adjoint`."""
     p = wp.tid()
     inv_dx = domain.inv_dx
     base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
@@ -117,13 +136,69 @@ def g2p_gather_adjoint(
     g_sk = wp.vec3(g_S[0, 2], g_S[1, 2], g_S[2, 2])
     for i in range(3):
         for j in range(3):
+            # v_n enters v with weight w and S's columns with i w, j w, k w: node ijk's adjoint is
+            # w (g_ij + k g_sk); d loss / d w_ijk = v_n . (g_ij + k g_sk), summed against Wz_k (a), dWz_k (b).
+            g_ij = g_v + float(i) * g_si + float(j) * g_sj
+            wij = W[i, 0] * W[j, 1]
+            a = float(0.0)
+            b = float(0.0)
             for k in range(3):
-                # v_n enters v with weight w and S's columns with i w, j w, k w.
-                g_node = g_v + float(i) * g_si + float(j) * g_sj + float(k) * g_sk
-                w = W[i, 0] * W[j, 1] * W[k, 2]
-                wp.atomic_add(adj_grid_v, base[0] + i, base[1] + j, base[2] + k, w * g_node)
+                g_node = g_ij + float(k) * g_sk
+                wp.atomic_add(adj_grid_v, base[0] + i, base[1] + j, base[2] + k, (wij * W[k, 2]) * g_node)
                 g_w = wp.dot(grid.v[base[0] + i, base[1] + j, base[2] + k], g_node)
-                g_fx = g_fx + g_w * weight_gradient(W, dW, i, j, k)
+                a = a + W[k, 2] * g_w
+                b = b + dW[k, 2] * g_w
+            g_fx = g_fx + wp.vec3(dW[i, 0] * W[j, 1] * a, W[i, 0] * dW[j, 1] * a, wij * b)
     adj_x[p] = adj_x[p] + inv_dx * g_fx
     adj_v[p] = wp.vec3(0.0)
     adj_C[p] = wp.mat33(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def g2p_update_elastic_adjoint(
+    state: ParticleState,
+    particles: ParticleModel,
+    domain: Domain,
+    transfer: ParticleTransfer,
+    dt: float,
+    out: ParticleState,
+    adj_state: ParticleState,
+    adj_transfer: ParticleTransfer,
+    adj_out: ParticleState,
+):
+    """Adjoint of :func:`~endogsim.physics.kernels.g2p_update` when no material yields (every yield stress
+    0: F_new = (I + dt C) F, no return mapping): from the adjoints of the new state (read, then zeroed:
+    consumed, as Warp does for arrays a kernel writes) to those of the old state's x and F and of the
+    gathered v and C (added to). Pinned and held particles' positions and velocities do not depend on the
+    grid (Dirichlet conditions); a coordinate clamped to the padded box passes no gradient (Warp's rule
+    for ``clamp``: x passes when lo <= x < hi)."""
+    p = wp.tid()
+    g_x = adj_out.x[p]
+    g_v = adj_out.v[p]
+    g_C = adj_out.C[p]
+    g_F = adj_out.F[p]
+    new_v = transfer.v[p]
+    new_C = transfer.C[p]
+    F_old = state.F[p]
+
+    x_new = state.x[p] + dt * new_v
+    pinned = particles.pinned[p] != 0
+    if pinned:
+        x_new = state.x[p]
+    if particles.held[p] < 0:
+        lo = domain.x_lo
+        hi = domain.x_hi
+        g_xc = wp.vec3(0.0)
+        for c in range(3):
+            if x_new[c] >= lo and x_new[c] < hi:
+                g_xc[c] = g_x[c]
+        adj_state.x[p] = adj_state.x[p] + g_xc
+        if not pinned:
+            adj_transfer.v[p] = adj_transfer.v[p] + (g_v + dt * g_xc)
+    M = wp.identity(n=3, dtype=float) + dt * new_C
+    adj_state.F[p] = adj_state.F[p] + wp.transpose(M) * g_F
+    adj_transfer.C[p] = adj_transfer.C[p] + (g_C + dt * (g_F * wp.transpose(F_old)))
+    adj_out.x[p] = wp.vec3(0.0)
+    adj_out.v[p] = wp.vec3(0.0)
+    adj_out.C[p] = wp.mat33(0.0)
+    adj_out.F[p] = wp.mat33(0.0)
