@@ -1,9 +1,11 @@
-"""Hand-written adjoints of the two stencil transfers of an MPM substep (:mod:`endogsim.physics.kernels`).
+"""Hand-written adjoints of kernels of an MPM substep (:mod:`endogsim.physics.kernels`): the two stencil
+transfers, and the particle update when no material yields.
 
 Warp generates an adjoint for every kernel by replaying it and keeping each intermediate of the unrolled
 27-node stencil; for ``p2g`` and ``g2p`` those adjoints took 4-6x their forward kernels on a CPU, 60% of
 an identification iteration's kernel time. The adjoints here gather what each node contributes in one pass
-over the stencil, like the forward. Each reads the adjoints of its kernel's outputs and adds to those of its
+over the stencil, like the forward. The particle update's generated adjoint took 2.6x its forward (it
+replays the kernel, plasticity branch included); without plasticity its adjoint is a few products. Each reads the adjoints of its kernel's outputs and adds to those of its
 inputs (or sets them, for inputs that no other kernel reads); :meth:`endogsim.physics.engine.MPMEngine.substep`
 records them on the Warp tape in place of the generated ones.
 
@@ -30,6 +32,12 @@ from endogsim.physics.kernels import (
 __all__ = ["p2g_scatter_adjoint", "g2p_gather_adjoint", "g2p_update_elastic_adjoint"]
 
 
+@wp.func
+def weight_gradient(W: wp.mat33, dW: wp.mat33, i: int, j: int, k: int):
+    """d w_ijk / d fx (grid units) of the stencil weight w_ijk = W[i, 0] W[j, 1] W[k, 2]."""
+    return wp.vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+
+
 @wp.kernel(enable_backward=False)
 def p2g_scatter_adjoint(
     x: wp.array(dtype=wp.vec3),
@@ -49,7 +57,9 @@ def p2g_scatter_adjoint(
     (:func:`~endogsim.physics.kernels.apic_node_terms`). Every sum over the stencil factors along the axes:
     the innermost loop only sums the node adjoints (g_mv, g_m) weighted by Wz_k and by dWz_k (and k times
     both); each row ij then contributes through its weights Wx_i Wy_j and their derivatives. The same sums
-    as node by node, in a fifth of the arithmetic."""
+    as node by node in a fifth of the arithmetic (measured: 10-25% less time on random particles, 3-5% on
+    pulling's, where reading the grid's adjoints dominates; the gather's adjoint, factored alike, gained
+    nothing and stays node by node)."""
     p = wp.tid()
     inv_dx = domain.inv_dx
     base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
@@ -119,8 +129,7 @@ def g2p_gather_adjoint(
 ):
     """Adjoint of :func:`~endogsim.physics.kernels.g2p_gather`: from the adjoints of the gathered velocity
     and C (read, then zeroed: they are consumed, as Warp does for arrays a kernel writes) to those of the
-    node velocities and the particle's position (added to). The position's sum factors along the axes as
-    in :func:`p2g_scatter_adjoint`."""
+    node velocities and the particle's position (added to)."""
     p = wp.tid()
     inv_dx = domain.inv_dx
     base, fx, W = quadratic_stencil(x[p], inv_dx, domain.n)
@@ -136,19 +145,13 @@ def g2p_gather_adjoint(
     g_sk = wp.vec3(g_S[0, 2], g_S[1, 2], g_S[2, 2])
     for i in range(3):
         for j in range(3):
-            # v_n enters v with weight w and S's columns with i w, j w, k w: node ijk's adjoint is
-            # w (g_ij + k g_sk); d loss / d w_ijk = v_n . (g_ij + k g_sk), summed against Wz_k (a), dWz_k (b).
-            g_ij = g_v + float(i) * g_si + float(j) * g_sj
-            wij = W[i, 0] * W[j, 1]
-            a = float(0.0)
-            b = float(0.0)
             for k in range(3):
-                g_node = g_ij + float(k) * g_sk
-                wp.atomic_add(adj_grid_v, base[0] + i, base[1] + j, base[2] + k, (wij * W[k, 2]) * g_node)
+                # v_n enters v with weight w and S's columns with i w, j w, k w.
+                g_node = g_v + float(i) * g_si + float(j) * g_sj + float(k) * g_sk
+                w = W[i, 0] * W[j, 1] * W[k, 2]
+                wp.atomic_add(adj_grid_v, base[0] + i, base[1] + j, base[2] + k, w * g_node)
                 g_w = wp.dot(grid.v[base[0] + i, base[1] + j, base[2] + k], g_node)
-                a = a + W[k, 2] * g_w
-                b = b + dW[k, 2] * g_w
-            g_fx = g_fx + wp.vec3(dW[i, 0] * W[j, 1] * a, W[i, 0] * dW[j, 1] * a, wij * b)
+                g_fx = g_fx + g_w * weight_gradient(W, dW, i, j, k)
     adj_x[p] = adj_x[p] + inv_dx * g_fx
     adj_v[p] = wp.vec3(0.0)
     adj_C[p] = wp.mat33(0.0)
