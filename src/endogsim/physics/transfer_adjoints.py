@@ -5,9 +5,10 @@ Warp generates an adjoint for every kernel by replaying it and keeping each inte
 27-node stencil; for ``p2g`` and ``g2p`` those adjoints took 4-6x their forward kernels on a CPU, 60% of
 an identification iteration's kernel time. The adjoints here gather what each node contributes in one pass
 over the stencil, like the forward. The particle update's generated adjoint took 2.6x its forward (it
-replays the kernel, plasticity branch included); without plasticity its adjoint is a few products. Each reads the adjoints of its kernel's outputs and adds to those of its
-inputs (or sets them, for inputs that no other kernel reads); :meth:`endogsim.physics.engine.MPMEngine.substep`
-records them on the Warp tape in place of the generated ones.
+replays the kernel, plasticity branch included); without plasticity its adjoint is a few products. Each
+reads the adjoints of its kernel's outputs and adds to those of its inputs (or sets them, for inputs that
+no other kernel reads); :meth:`endogsim.physics.engine.MPMEngine.substep` records them on the Warp tape in
+place of the generated ones.
 
 Notation: a particle at x (sim units) has stencil offset fx = x / dx - base (grid units) and weights
 w_ijk = Wx_i(fx) Wy_j(fx) Wz_k(fx); dW is their derivative (:func:`~endogsim.physics.kernels.
