@@ -14,7 +14,7 @@ from endogsim.materials.field import MaterialField, MaterialRecord
 from endogsim.physics import Anchor, MPMConfig, ObjectMaterials, Particles, RigidCollider, Scenario, SimBox, simulate
 from endogsim.physics import kernels as K
 from endogsim.physics.constitutive import MODELS, model_id, model_names, stress_torch
-from endogsim.physics.polar import polar_rotation
+from endogsim.physics.polar import newton_polar_rotation, rotation_with_adjoint
 from endogsim.warp_runtime import init_warp
 
 BOX = SimBox((0.0, 0.0, 0.0), 0.1)
@@ -26,7 +26,7 @@ def _stress(model: wp.array(dtype=wp.int32), F: wp.array(dtype=wp.mat33), mu: fl
     i = wp.tid()
     R = wp.identity(n=3, dtype=float)
     if K.uses_rotation(model[i]) != 0:
-        R = polar_rotation(F[i])
+        R = rotation_with_adjoint(F[i], newton_polar_rotation(F[i]))  # as particle_momentum does
     out[i] = K.kirchhoff_stress(model[i], F[i], R, mu, lam)
 
 

@@ -300,7 +300,7 @@ def particle_momentum(
     Fp = state.F[p]
     R = wp.identity(n=3, dtype=float)
     if uses_rotation(model) != 0:
-        # polar_rotation inline: the adjoint's replay of this kernel then runs the Newton iteration once.
+        # Inline, not wrapped in a function: the adjoint's replay then runs the Newton iteration once.
         R = rotation_with_adjoint(Fp, newton_polar_rotation(Fp))
     tau = kirchhoff_stress(model, Fp, R, ml[0], ml[1])
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * state.C[p]

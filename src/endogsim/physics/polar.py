@@ -9,8 +9,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-__all__ = ["proper_svd_rotations", "newton_polar_rotation", "rotation_with_adjoint", "polar_rotation",
-           "polar_rotation_torch"]
+__all__ = ["proper_svd_rotations", "newton_polar_rotation", "rotation_with_adjoint", "polar_rotation_torch"]
 
 
 @wp.func
@@ -31,12 +30,13 @@ def proper_svd_rotations(F: wp.mat33):
 
 @wp.func
 def newton_polar_rotation(F: wp.mat33):
-    """Rotation R of the polar decomposition F = R S (its gradient: :func:`polar_rotation`).
+    """Rotation R of the polar decomposition F = R S; with its gradient: ``rotation_with_adjoint(F,
+    newton_polar_rotation(F))`` (:func:`rotation_with_adjoint`).
 
     Scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986): a few 3x3 inverses instead of an
     SVD, about 5x cheaper on CPU, and exact at F = I. An inverted or degenerate F (det <= 1e-6) takes
     the SVD path, whose proper rotations keep R a rotation. The loop needs no autodiff: its adjoint is
-    nothing, the gradient flows through :func:`polar_rotation` instead.
+    nothing, the gradient flows through :func:`rotation_with_adjoint` instead.
     """
     R = wp.identity(n=3, dtype=float)
     if wp.determinant(F) <= 1.0e-6:
@@ -60,15 +60,17 @@ def newton_polar_rotation(F: wp.mat33):
 
 @wp.func_grad(newton_polar_rotation)
 def adj_newton_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
-    # Nothing: polar_rotation routes the gradient through rotation_with_adjoint.
+    # Nothing: the gradient flows through rotation_with_adjoint, which callers wrap around this function.
     return
 
 
 @wp.func
 def rotation_with_adjoint(F: wp.mat33, R: wp.mat33):
-    """R, the polar rotation of F (:func:`newton_polar_rotation`), passed through: its adjoint takes R from
-    here instead of running the Newton iteration again (a backward pass then runs it once, replaying the
-    forward, not twice)."""
+    """R, the polar rotation of F (:func:`newton_polar_rotation`), passed through with the rotation's gradient
+    (:func:`adj_rotation_with_adjoint`): call ``rotation_with_adjoint(F, newton_polar_rotation(F))`` inline in
+    the kernel. The adjoint takes R from here instead of running the Newton iteration again, and the
+    kernel's adjoint replays the iteration once. A ``wp.func`` wrapping the pair would cost a second run:
+    Warp's adjoint of a function replays that function's forward (measured: 2.5x the adjoint's time)."""
     return R
 
 
@@ -92,15 +94,6 @@ def adj_rotation_with_adjoint(F: wp.mat33, R: wp.mat33, adj_ret: wp.mat33):
     q = wp.inverse(G) * skew_axial(wp.transpose(R) * adj_ret)
     Q = wp.mat33(0.0, -q[2], q[1], q[2], 0.0, -q[0], -q[1], q[0], 0.0)
     wp.adjoint[F] += 2.0 * R * Q
-
-
-@wp.func
-def polar_rotation(F: wp.mat33):
-    """Rotation R of the polar decomposition F = R S (:func:`newton_polar_rotation`), with the adjoint of
-    :func:`adj_rotation_with_adjoint`. A kernel whose adjoint runs often writes this body inline (as
-    ``particle_momentum`` does): Warp's adjoint of a function replays the function's forward, here the
-    Newton iteration, on top of the kernel's own replay (measured: 2.5x the adjoint's time)."""
-    return rotation_with_adjoint(F, newton_polar_rotation(F))
 
 
 def polar_rotation_torch(F: torch.Tensor) -> torch.Tensor:
