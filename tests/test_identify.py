@@ -405,3 +405,38 @@ def test_shared_scale_adam_is_adam_for_one_object_and_steps_weakly_observed_obje
     (x * torch.tensor([1.0, 0.2])).sum().backward()
     opt.step()
     assert torch.allclose(x.detach(), torch.tensor([-0.1, -0.02]), atol=1e-6)
+
+
+def test_shared_scale_rprop_travels_far_settles_and_steps_weakly_observed_objects_less():
+    from endogsim.identify.optimize import OPTIMIZERS, SharedScaleAdam, SharedScaleRprop
+
+    def run(make, steps=10):
+        x = torch.tensor([0.0], requires_grad=True)
+        opt, path = make([x]), []
+        for k in range(steps):
+            opt.zero_grad()
+            ((x + 0.66) ** 2).sum().backward()  # a prior 0.66 decades off (the suite's stomach)
+            opt.step()
+            path.append(float(x.detach()))
+        return path
+
+    rprop = run(lambda p: SharedScaleRprop(p, lr=0.1))
+    # Steps of 0.1, 0.12, 0.144, ... while the gradient keeps its sign; halved when it turns.
+    assert [round(b - a, 6) for a, b in zip([0.0] + rprop, rprop)][:3] == [-0.1, -0.12, -0.144]
+    assert abs(rprop[-1] + 0.66) < 0.05
+    adam = run(lambda p: SharedScaleAdam(p, lr=0.1))
+    assert abs(adam[-1] + 0.66) > 0.1  # Adam's steps of about lr leave it short after 10 iterations
+    # Two objects, gradients 1 : 0.2: the first steps by the size, the second by a fifth of it.
+    x = torch.zeros(2, requires_grad=True)
+    opt = OPTIMIZERS.get("rprop")([{"params": [x]}], 0.1)
+    (x * torch.tensor([1.0, 0.2])).sum().backward()
+    opt.step()
+    assert torch.allclose(x.detach(), torch.tensor([-0.1, -0.02]), atol=1e-6)
+    # Its state round-trips through a checkpoint: a resumed run takes the same next step.
+    again = OPTIMIZERS.get("rprop")([{"params": [y := x.detach().clone().requires_grad_()]}], 0.1)
+    again.load_state_dict(opt.state_dict())
+    for p, o in ((x, opt), (y, again)):
+        o.zero_grad()
+        (p * torch.tensor([1.0, 0.2])).sum().backward()
+        o.step()
+    assert torch.equal(x.detach(), y.detach()) and abs(float(x[0]) + 0.22) < 1e-6

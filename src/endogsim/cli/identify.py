@@ -31,7 +31,9 @@ def register(app: typer.Typer) -> None:
         iters: int = typer.Option(_DEFAULT.iters, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
         global_material: bool = typer.Option(False, "--global-material",
                                               help="One (E, nu) for every deformable object (ablation)."),
-        lr: float = typer.Option(_DEFAULT.lr, "--lr", help="Adam step (decades of E; raw nu units)."),
+        optimizer: str = typer.Option(_DEFAULT.optimizer, "--optimizer",
+                                      help="rprop (steps grow while the gradient keeps its direction) | adam."),
+        lr: float = typer.Option(_DEFAULT.lr, "--lr", help="First step on log10 E (decades; nu's is 3x in raw units)."),
         render_scale: float = typer.Option(_DEFAULT.render_scale, "--render-scale",
                                            help="Render/compare at this fraction of the image size."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
@@ -58,6 +60,7 @@ def register(app: typer.Typer) -> None:
         from endogsim.identify import run_identify
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
+                             optimizer=optimizer,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
                              flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget,
                              coarse_factor=coarse_factor or None)

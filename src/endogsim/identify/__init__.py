@@ -12,8 +12,9 @@ Typical use::
     result = identify(problem, init_field, IdentifyConfig(loss="joint", grad_mode="frame"), run_dir="runs/press")
     result.field.save("materials_identified.json")
 
-Modules: :mod:`~endogsim.identify.config` (options), :mod:`~endogsim.identify.loss` (the paper's loss), :mod:`~endogsim.identify.optimize` (the Adam loop,
-checkpoints), :mod:`~endogsim.identify.report` (metrics, plots, video), :mod:`~endogsim.identify.run`.
+Modules: :mod:`~endogsim.identify.config` (options), :mod:`~endogsim.identify.loss` (the paper's loss),
+:mod:`~endogsim.identify.optimize` (the optimisation loop, checkpoints), :mod:`~endogsim.identify.report` (metrics,
+plots, video), :mod:`~endogsim.identify.run`.
 The scene it identifies, and simulate-then-render, come from :mod:`endogsim.scene`.
 """
 

@@ -39,10 +39,15 @@ class IdentifyConfig:
             loss, at the cost of "frame" (one taped frame at a time either way); "frame" has the right
             sign but 40-60% of the size, and "last_substep" is 100-300x too small with the wrong sign.
         iters: the most optimisation iterations (each = one simulation + render + backward).
-        lr: Adam step on log10 E (decades).
-        lr_nu: Adam step on the raw (pre-sigmoid) Poisson parameter; larger than ``lr`` because the
+        optimizer: "rprop" (:class:`~endogsim.identify.optimize.SharedScaleRprop`, the default: the first step
+            is ``lr``, then it grows by 1.2 while the gradient keeps its direction and halves when it turns,
+            within 0.01-5 ``lr``; the schedule below is not used) or "adam"
+            (:class:`~endogsim.identify.optimize.SharedScaleAdam`: steps of about ``lr`` on the schedule below,
+            so 10 iterations travel at most about half a decade of E; docs/IDENTIFICATION.md section 2).
+        lr: the first step on log10 E (decades).
+        lr_nu: the first step on the raw (pre-sigmoid) Poisson parameter; larger than ``lr`` because the
             sigmoid is flat near the bounds, where tissue's nu (0.4 to 0.49) lies.
-        lr_final_fraction: the step decays exponentially to ``lr * lr_final_fraction`` at the last iteration.
+        lr_final_fraction: Adam's step decays exponentially to ``lr * lr_final_fraction`` at the last iteration.
         max_grad_norm: gradient clipping (L2 norm over all parameters).
         time_budget: a safety stop: no new iteration starts once this many seconds of optimisation have
             passed (None: no limit); the best iterate so far is kept and ``metrics.json`` says
@@ -55,8 +60,8 @@ class IdentifyConfig:
         patience: stop after this many iterations without progress (early stopping).
         stationary_patience: stop after this many consecutive iterations whose gradient could not make
             progress even over a whole unit step: |d loss / d log10 E| (per decade) and |d loss / d raw nu|
-            (per raw unit) all below ``tol`` times the loss. Adam normalises its steps, so on a flat loss it
-            walks a full learning rate on noise; this ends such a run (e.g. a real clip where no instrument
+            (per raw unit) all below ``tol`` times the loss. Both optimisers normalise their steps, so on a
+            flat loss they walk a full step on noise; this ends such a run (e.g. a real clip where no instrument
             moves the tissue: relative gradients 1e-5 to 6e-4 per decade, against 6e-3 to 1 on the suite's
             and the demo's scenes; docs/IDENTIFICATION.md section 2: one such iteration already separates
             the regimes, so one is enough). 0: never.
@@ -102,6 +107,7 @@ class IdentifyConfig:
     loss_terms: dict[str, float] | None = None
     grad_mode: GradMode = "full"
     iters: int = 30
+    optimizer: str = "rprop"
     lr: float = 0.1
     lr_nu: float = 0.3
     lr_final_fraction: float = 0.2
@@ -133,6 +139,9 @@ class IdentifyConfig:
             raise MaterialError(f"grad mode {self.grad_mode!r} is not one of {', '.join(GRAD_MODES)}")
         if self.iters < 0:
             raise MaterialError(f"iters = {self.iters} must be >= 0")
+        from endogsim.identify.optimize import OPTIMIZERS
+
+        OPTIMIZERS.get(self.optimizer)
         if not (self.lr > 0 and self.lr_nu > 0):
             raise MaterialError(f"lr = {self.lr}, lr_nu = {self.lr_nu} must be > 0")
         if not (0 < self.render_scale <= 1):
