@@ -408,7 +408,12 @@ def test_shared_scale_adam_is_adam_for_one_object_and_steps_weakly_observed_obje
 
 
 def test_shared_scale_rprop_travels_far_settles_and_steps_weakly_observed_objects_less():
+    from endogsim.identify.config import OPTIMIZER_KINDS
     from endogsim.identify.optimize import OPTIMIZERS, SharedScaleAdam, SharedScaleRprop
+
+    assert sorted(OPTIMIZERS.names()) == sorted(OPTIMIZER_KINDS)  # every option the config accepts has its implementation
+    with pytest.raises(MaterialError, match="optimiser"):
+        IdentifyConfig(optimizer="sgd")
 
     def run(make, steps=10):
         x = torch.tensor([0.0], requires_grad=True)

@@ -12,6 +12,9 @@ from endogsim.priors.flow import FlowConfig
 
 LossKind = Literal["joint_track", "joint", "render", "flow", "track"]
 LOSSES: tuple[str, ...] = get_args(LossKind)
+#: Identification's optimisers (their implementations: ``endogsim.identify.optimize.OPTIMIZERS``).
+OptimizerKind = Literal["rprop", "adam"]
+OPTIMIZER_KINDS: tuple[str, ...] = get_args(OptimizerKind)
 #: The automatic frame stride compares at least this many frames (the intervals' t-test then has 9 degrees of
 #: freedom or more): a 10-frame clip is compared at every frame, a 20-frame one at every second.
 MIN_COMPARED_FRAMES = 10
@@ -107,7 +110,7 @@ class IdentifyConfig:
     loss_terms: dict[str, float] | None = None
     grad_mode: GradMode = "full"
     iters: int = 30
-    optimizer: str = "rprop"
+    optimizer: OptimizerKind = "rprop"
     lr: float = 0.1
     lr_nu: float = 0.3
     lr_final_fraction: float = 0.2
@@ -139,9 +142,8 @@ class IdentifyConfig:
             raise MaterialError(f"grad mode {self.grad_mode!r} is not one of {', '.join(GRAD_MODES)}")
         if self.iters < 0:
             raise MaterialError(f"iters = {self.iters} must be >= 0")
-        from endogsim.identify.optimize import OPTIMIZERS
-
-        OPTIMIZERS.get(self.optimizer)
+        if self.optimizer not in OPTIMIZER_KINDS:
+            raise MaterialError(f"optimiser {self.optimizer!r} is not one of {', '.join(OPTIMIZER_KINDS)}")
         if not (self.lr > 0 and self.lr_nu > 0):
             raise MaterialError(f"lr = {self.lr}, lr_nu = {self.lr_nu} must be > 0")
         if not (0 < self.render_scale <= 1):
