@@ -411,7 +411,7 @@ def test_shared_scale_rprop_travels_far_settles_and_steps_weakly_observed_object
     from endogsim.identify.config import OPTIMIZER_KINDS
     from endogsim.identify.optimize import OPTIMIZERS, SharedScaleAdam, SharedScaleRprop
 
-    assert sorted(OPTIMIZERS.names()) == sorted(OPTIMIZER_KINDS)  # every option the config accepts has its implementation
+    assert sorted(OPTIMIZERS.names()) == sorted(OPTIMIZER_KINDS)  # every optimiser the config takes is implemented
     with pytest.raises(MaterialError, match="optimiser"):
         IdentifyConfig(optimizer="sgd")
 
