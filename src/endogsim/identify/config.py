@@ -46,7 +46,7 @@ class IdentifyConfig:
             is ``lr``, then it grows by 1.2 while the gradient keeps its direction and halves when it turns,
             within 0.01-5 ``lr``; the schedule below is not used) or "adam"
             (:class:`~endogsim.identify.optimize.SharedScaleAdam`: steps of about ``lr`` on the schedule below,
-            so 10 iterations travel at most about half a decade of E; docs/IDENTIFICATION.md section 2).
+            so 10 iterations travel at most about half a decade of E; docs/IDENTIFICATION.md section 4).
         lr: the first step on log10 E (decades).
         lr_nu: the first step on the raw (pre-sigmoid) Poisson parameter; larger than ``lr`` because the
             sigmoid is flat near the bounds, where tissue's nu (0.4 to 0.49) lies.
