@@ -383,6 +383,35 @@ def test_drive_gaussians_rigid_rotation_moves_means_covariances_and_colours():
     assert torch.allclose(rotate_sh(g.sh, torch.eye(3).expand(len(g), 3, 3)), g.sh, atol=1e-5)
 
 
+def test_drive_gaussians_gradient_is_the_same_every_run_on_two_threads():
+    # Each particle drives several Gaussians: the backward adds its shares. Outside PyTorch's deterministic
+    # mode, advanced indexing's backward adds them with CPU atomics in thread order (this test failed with
+    # it); index_select's adds them in order. (On one core it passes either way.)
+    torch.manual_seed(0)
+    g = _surface_gaussians(n=150)
+    order = torch.randperm(len(g))  # a particle's shares then come from every thread
+    g = g.with_(means=g.means[order], object_ids=g.object_ids[order])
+    parts = Particles(g.means[::3].clone(), torch.full((len(g.means[::3]),), 1e-9), g.object_ids[::3].clone())
+    b = bind_gaussians(g.means, g.object_ids, parts, k=8)
+    up_m, up_c = torch.randn(len(g), 3), torch.randn(len(g), 3, 3)
+
+    def grads():
+        pos = (parts.x + 1e-4 * torch.randn(len(parts), 3, generator=torch.Generator().manual_seed(1))).requires_grad_()
+        F = (torch.eye(3) + 0.01 * torch.randn(len(parts), 3, 3, generator=torch.Generator().manual_seed(2)))
+        F.requires_grad_()
+        means, covs, _ = drive_gaussians(g, b, pos, F, rotate_colors=False)
+        ((means * up_m).sum() + (covs * up_c).sum()).backward()
+        return pos.grad, F.grad
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        runs = [grads() for _ in range(4)]
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(runs[0][0], r[0]) and torch.equal(runs[0][1], r[1]) for r in runs[1:])
+
+
 def test_slip_anchor_stops_normal_motion_only_and_mask_pins_particles():
     # A block sliding along x and falling onto a slip floor (normal y): y motion stops, x motion goes on.
     parts = Particles.box((0.04, 0.0315, 0.04), (0.05, 0.04, 0.05), 0.0015)

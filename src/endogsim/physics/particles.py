@@ -269,11 +269,18 @@ def drive_gaussians(
     if positions.shape[0] != binding.particle_rest.shape[0]:
         raise ModelError(f"positions have {positions.shape[0]} particles, the binding {binding.particle_rest.shape[0]}")
     idx, w = binding.index.to(positions.device), binding.weights.to(positions.device, positions.dtype)
-    disp = positions[idx] - binding.particle_rest.to(positions)[idx]  # [G, k, 3]
+    G, k = idx.shape
+    flat = idx.reshape(-1)
+    # index_select, not positions[idx]: outside PyTorch's deterministic mode (endogsim.determinism) the
+    # backward of advanced indexing adds a particle's shares on a CPU with atomics in whatever order the
+    # threads come, a gradient differing run to run in its last bits; index_select's backward adds them in
+    # order, to the same bits as the deterministic mode's, so callers need not switch the mode on.
+    disp = (positions - binding.particle_rest.to(positions)).index_select(0, flat).reshape(G, k, 3)
     means = gaussians.means.to(positions) + (w[..., None] * disp).sum(1)
     eye = torch.eye(3, dtype=F.dtype, device=F.device)
     wsum = w.sum(1)
-    Fg = (w.to(F.dtype)[..., None, None] * F[idx]).sum(1) + (1 - wsum.to(F.dtype))[:, None, None] * eye
+    Fg = (w.to(F.dtype)[..., None, None] * F.index_select(0, flat).reshape(G, k, 3, 3)).sum(1) \
+        + (1 - wsum.to(F.dtype))[:, None, None] * eye
     cov0 = gaussians.covariances().to(F)
     covs = Fg @ cov0 @ Fg.transpose(-1, -2)
     sh = gaussians.sh
