@@ -214,6 +214,33 @@ def test_a_block_on_a_tilted_support_sticks_with_friction_and_slides_without():
     assert slide["slip_support"] == pytest.approx(gravity[0] * t ** 2 / 2, rel=0.15)
 
 
+def test_a_block_on_a_tilted_coulomb_support_slides_as_coulomb_friction_says():
+    """The same 30-degree slope on a "support" with a Coulomb coefficient mu: below tan(30) = 0.577 the block
+    slides with g (sin 30 - mu cos 30), above it (nearly) stays put, and mu = 0 is the frictionless support
+    exactly."""
+    g, T, dt = 9.81, 8, 1.0 / 200
+    gravity = (g * math.sin(math.radians(30)), 0.0, -g * math.cos(math.radians(30)))
+    parts = Particles.box((0.04, 0.04, 0.0416), (0.056, 0.056, 0.05), 0.001)
+    t = (T - 1) * dt
+    runs = {}
+    for kind, mu in (("slip_support", None), ("support", 0.0), ("support", 0.2), ("support", 1.0)):
+        under = Anchor(lo=(0.0, 0.0, 0.0), hi=(0.1, 0.1, 0.0416), kind=kind, normal=(0.0, 0.0, 1.0), friction=mu)
+        scen = Scenario(BOX, gravity=gravity, anchors=[under])
+        res = simulate(parts, _mats(E=5e4), scen, MPMConfig(grid_res=64, frame_dt=dt, damping=0.0), num_frames=T)
+        runs[mu] = res.positions
+    assert torch.equal(runs[0.0], runs[None])  # a node's tangential velocity times |v_t| / |v_t| = 1
+    slide = {mu: float((x[-1] - parts.x)[:, 0].mean()) for mu, x in runs.items()}
+    a = g * (math.sin(math.radians(30)) - 0.2 * math.cos(math.radians(30)))
+    assert slide[0.2] == pytest.approx(a * t ** 2 / 2, rel=0.2)
+    # Above tan(30) nearly put: 12% of the frictionless slide (nodes of the undamped elastic block that bounce
+    # off the support for a substep are free then), against 66% at mu = 0.2.
+    assert abs(slide[1.0]) < 0.15 * gravity[0] * t ** 2 / 2
+    with pytest.raises(SimulationError, match="friction"):
+        Anchor(lo=(0.0, 0.0, 0.0), hi=(0.1, 0.1, 0.04), kind="slip_support", friction=0.5)
+    with pytest.raises(SimulationError, match="friction"):
+        Anchor(lo=(0.0, 0.0, 0.0), hi=(0.1, 0.1, 0.04), kind="support", friction=-1.0)
+
+
 def test_a_scene_chooses_its_back_face_support_with_or_without_friction():
     from endogsim.errors import DataError
     from endogsim.scene.schema import ObjectBoundary
@@ -222,6 +249,12 @@ def test_a_scene_chooses_its_back_face_support_with_or_without_friction():
         assert ObjectBoundary.from_json({"back_face": back}).back_face == back
     with pytest.raises(DataError, match="slip_support"):
         ObjectBoundary.from_json({"back_face": "glue"})
+    assert ObjectBoundary.from_json({"back_face": "support"}).support_friction is None  # sticks while pressed
+    assert ObjectBoundary.from_json({"back_face": "support", "support_friction": 1}).support_friction == 1.0
+    for bad in ({"back_face": "slip_support", "support_friction": 1}, {"back_face": "support", "support_friction": -1},
+                {"back_face": "support", "support_friction": "much"}):
+        with pytest.raises(DataError, match="support_friction"):
+            ObjectBoundary.from_json(bad)
 
 
 @pytest.mark.gpu

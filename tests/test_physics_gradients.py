@@ -149,6 +149,7 @@ def _transfer_case(seed: int = 0, P: int = 60, n: int = 12):
     d.n, d.inv_dx, d.pad, d.sticky_walls, d.x_lo, d.x_hi = n, float(n), 2, 1, 0.0, 1.0
     d.bc_kind = wp.zeros((n,) * 3, dtype=wp.int32)
     d.bc_normal = wp.zeros((n,) * 3, dtype=wp.vec3)
+    d.bc_friction = wp.zeros((n,) * 3, dtype=float)
     d.gravity = wp.vec3(0.0)
     tr = alloc_transfer(P, "cpu", False)
     wp.copy(tr.mass, wp.from_torch(mass))

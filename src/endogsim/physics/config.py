@@ -6,6 +6,7 @@ converts them to sim-box units in :mod:`endogsim.physics.units`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal, get_args
@@ -102,6 +103,10 @@ class Anchor:
         converge with the grid, those inferred from particle layers do not.
       - "slip_support": the same separable support without friction: a node moving into it loses only that
         component of its velocity and slides along it (wet tissue on wet anatomy).
+      A "support" with a ``friction`` coefficient mu is a Coulomb support instead: a node pressed into it loses
+      its normal velocity and its tangential speed shrinks by mu times the normal speed (to rest when that
+      is more). Its velocity is continuous where "support"'s stick-or-free switch jumps (a last-bit change
+      of a material can flip a node and move the tissue by microns; docs/REAL_VIDEO.md section 10).
 
     Attributes:
         lo, hi: world box corners (metres), or None.
@@ -110,6 +115,7 @@ class Anchor:
         normal: unit normal (world) for "slip" and the supports (for a support: pointing out of it, into the
             tissue), or a field of normals at world points.
         particle_mask: [P] bool, particles to pin ("fixed" only).
+        friction: Coulomb coefficient of a "support" (>= 0), or None: the support sticks while pressed.
     """
 
     lo: tuple[float, float, float] | None = None
@@ -118,10 +124,16 @@ class Anchor:
     normal: tuple[float, float, float] | NormalField = (0.0, 0.0, 1.0)
     particle_mask: torch.Tensor | np.ndarray | None = None
     region: Region | None = None
+    friction: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in get_args(AnchorKind):
             raise SimulationError(f"Anchor.kind {self.kind!r} is not {'|'.join(get_args(AnchorKind))}")
+        if self.friction is not None:
+            if self.kind != "support":
+                raise SimulationError(f"Anchor.friction is a support's Coulomb coefficient, not a {self.kind} anchor's")
+            if not (math.isfinite(self.friction) and self.friction >= 0):
+                raise SimulationError(f"Anchor.friction = {self.friction} must be a finite number >= 0")
         if (self.lo is None) != (self.hi is None):
             raise SimulationError("Anchor needs both lo and hi (or neither)")
         if self.lo is not None and self.region is not None:

@@ -237,9 +237,10 @@ class MPMEngine:
         self._segments: dict[int, SegmentBuffers] = {}
 
         pinned = scenario.pinned(x0_world).astype(np.int32)
-        kinds, normals = self._node_conditions(scenario)
+        kinds, normals, friction = self._node_conditions(scenario)
         bc_kind = wp.from_numpy(kinds, dtype=wp.int32, device=dev)
         bc_normal = wp.from_numpy(normals.astype(np.float32), dtype=wp.vec3, device=dev)
+        bc_friction = wp.from_numpy(friction, dtype=float, device=dev)
         if pinned.any():
             # Pinned particles carry no mass (see kernels.particle_momentum); the nodes they dominate at rest are held.
             x0_sim = wp.from_numpy(self.box.to_sim(torch.from_numpy(x0_world)).float().numpy(), dtype=wp.vec3, device=dev)
@@ -263,7 +264,7 @@ class MPMEngine:
         d.sticky_walls = 1 if config.wall == "sticky" else 0
         pad_dx = 2.0 / self.inv_dx
         d.x_lo, d.x_hi = pad_dx, 1.0 - pad_dx
-        d.bc_kind, d.bc_normal = bc_kind, bc_normal
+        d.bc_kind, d.bc_normal, d.bc_friction = bc_kind, bc_normal, bc_friction
         d.gravity = wp.vec3(*[float(g) * s for g in scenario.gravity])
         self.domain = d
 
@@ -315,25 +316,28 @@ class MPMEngine:
         self.held_frames = [wp.array(held_sim[t].numpy(), dtype=wp.vec3, device=dev) for t in range(num_frames)]
 
     # -- set-up ----------------------------------------------------------------------------------------
-    def _node_conditions(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
-        """Per-node boundary-condition kinds [n, n, n] and normals [n, n, n, 3] of the anchors' boxes and
-        regions (unit-cube sim units share world directions). Later anchors win, sticky beats the others."""
+    def _node_conditions(self, scenario: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-node boundary-condition kinds [n, n, n], normals [n, n, n, 3] and Coulomb coefficients [n, n, n]
+        of the anchors' boxes and regions (unit-cube sim units share world directions). Later anchors win,
+        sticky beats the others."""
         n = self.n
         kinds = np.zeros((n,) * 3, dtype=np.int32)
         normals = np.zeros((n,) * 3 + (3,), dtype=np.float64)
+        friction = np.zeros((n,) * 3, dtype=np.float32)
         code = {"fixed": K.BC_STICKY, "sticky": K.BC_STICKY, "slip": K.BC_SLIP, "support": K.BC_SUPPORT,
                 "slip_support": K.BC_SLIP_SUPPORT}
         ax = np.arange(n, dtype=np.float64) * (self.box.size / n)
         for i in range(n):  # one plane of nodes at a time keeps the memory bounded
             nodes = np.stack(np.meshgrid([ax[i]], ax, ax, indexing="ij"), -1).reshape(-1, 3) + np.asarray(self.box.lo)
-            k_plane, n_plane = kinds[i].reshape(-1), normals[i].reshape(-1, 3)
+            k_plane, n_plane, f_plane = kinds[i].reshape(-1), normals[i].reshape(-1, 3), friction[i].reshape(-1)
             for a in scenario.anchors:
                 inside = a.contains(nodes) & (k_plane != K.BC_STICKY)
                 if inside.any():
-                    k_plane[inside] = code[a.kind]
+                    k_plane[inside] = code[a.kind] if a.friction is None else K.BC_COULOMB_SUPPORT
+                    f_plane[inside] = a.friction or 0.0
                     if a.kind in NORMAL_KINDS:
                         n_plane[inside] = a.normals(nodes[inside])
-        return kinds, normals
+        return kinds, normals, friction
 
     def _force_table(self, scenario: Scenario, x0_world: np.ndarray) -> tuple[np.ndarray, K.ForceTable]:
         """One force region per particle (the last force listed wins where regions overlap)."""

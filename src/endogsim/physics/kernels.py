@@ -42,6 +42,7 @@ BC_STICKY = 1
 BC_SLIP = 2
 BC_SUPPORT = 3  # separable: a node moving into the support stops, one moving away is free
 BC_SLIP_SUPPORT = 4  # separable and frictionless: a node moving into the support loses that component only
+BC_COULOMB_SUPPORT = 5  # separable with Coulomb friction (per-node coefficient): continuous in the velocity
 
 
 @wp.struct
@@ -126,6 +127,7 @@ class Domain:
     x_hi: float
     bc_kind: wp.array3d(dtype=wp.int32)
     bc_normal: wp.array3d(dtype=wp.vec3)
+    bc_friction: wp.array3d(dtype=float)
     gravity: wp.vec3
 
 
@@ -385,6 +387,20 @@ def grid_update(
         # anatomy behind it does not slide on it); one moving away from it is free (it lifts off).
         if wp.dot(v, domain.bc_normal[i, j, k]) < 0.0:
             v = wp.vec3(0.0)
+    elif kind == BC_COULOMB_SUPPORT:
+        # Separable, with Coulomb friction: pressed on the support, a node loses its normal velocity and its
+        # tangential speed shrinks by mu times the normal speed it lost (to rest when that is more). The
+        # velocity is continuous as the normal speed crosses 0, unlike BC_SUPPORT's stick-or-free switch.
+        nrm = domain.bc_normal[i, j, k]
+        vn = wp.dot(v, nrm)
+        if vn < 0.0:
+            vt = v - vn * nrm
+            st = wp.length(vt)
+            slip = st + domain.bc_friction[i, j, k] * vn
+            if slip > 0.0:
+                v = vt * (slip / st)
+            else:
+                v = wp.vec3(0.0)
     elif kind == BC_SLIP_SUPPORT:
         # Separable, frictionless: pressed on the support, a node keeps only its tangential velocity.
         nrm = domain.bc_normal[i, j, k]

@@ -92,7 +92,8 @@ class SlabConditions:
         if self.boundary.back_face == "fixed":
             out.append(Anchor(kind="sticky", region=self.behind))
         elif self.boundary.back_face in ("support", "slip_support"):
-            out.append(Anchor(kind=self.boundary.back_face, region=self.behind, normal=self.towards_camera))
+            out.append(Anchor(kind=self.boundary.back_face, region=self.behind, normal=self.towards_camera,
+                              friction=self.boundary.support_friction))
         if self.boundary.border > 0 and self.boundary.border_motion == "still":
             out.append(Anchor(kind="sticky", region=self.border))
         return out

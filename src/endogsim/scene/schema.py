@@ -127,12 +127,15 @@ class ObjectBoundary:
         border_motion: how the band is held: "still" (at rest) or "tracked" (it follows the reconstruction's
             tracks of the tissue there, ``tracks.npz``: what moves the tissue beyond the view moves the band).
         release: (centre [x, y] metres, radius metres) of a disc where the back face is free, or None.
+        support_friction: Coulomb coefficient of a "support" back face (``support_friction``; None: it sticks
+            while pressed; see :class:`endogsim.physics.Anchor`).
     """
 
     back_face: str = "fixed"
     border: float = 0.0
     release: tuple[tuple[float, float], float] | None = None
     border_motion: str = "still"
+    support_friction: float | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ObjectBoundary":
@@ -145,7 +148,13 @@ class ObjectBoundary:
         motion = str(d.get("border_motion", "still"))
         if motion not in ("still", "tracked"):
             raise DataError(f"boundary condition border_motion {motion!r} is not still|tracked")
-        return ObjectBoundary(back, float(d.get("border", 0.0)), release, motion)
+        mu = d.get("support_friction")
+        if mu is not None and (back != "support" or not isinstance(mu, (int, float)) or isinstance(mu, bool)
+                               or not (math.isfinite(mu) and mu >= 0)):
+            raise DataError(f"boundary condition support_friction {mu!r} must be a number >= 0, for a back_face "
+                            f"'support' (this one is {back!r})")
+        return ObjectBoundary(back, float(d.get("border", 0.0)), release, motion,
+                              None if mu is None else float(mu))
 
 
 @dataclass

@@ -7,8 +7,9 @@ writing live in :mod:`endogsim.synth.generate`.
 Boundary conditions (recorded in ``scene.json``; particles and their conditions are built from that
 description by :mod:`endogsim.scene.particles`, for the ground truth and for identification alike):
   * ``back_face``: the last layer of the slab (the hidden back of the tissue) is held ("fixed") or rests on
-    a support that pushes but never pulls, with friction while pressed ("support": the suite's) or without
-    ("slip_support"), except inside an optional ``release`` disc (so a grasper can lift a flap);
+    a support that pushes but never pulls, sticking while pressed ("support": the suite's), with Coulomb
+    friction (``support_friction``) or without ("slip_support"), except inside an optional ``release`` disc
+    (so a grasper can lift a flap);
   * ``border``: particles within ``border`` metres of an organ's outline are held (tissue continues
     outside the field of view), except where the outline meets another organ (it goes on into that one);
   * the sim box walls (2 grid cells) are fixed.
