@@ -69,6 +69,11 @@ class RealScenario:
             0.371 px EPE like a frozen frame; tracked, the tissue inside the band follows and the held-out EPE
             falls by about a tenth where the band is not (docs/REAL_VIDEO.md section 9).
         back_face: "support": the anatomy behind pushes, never pulls, so a grasper can lift the tissue off.
+        support_friction: the support's Coulomb coefficient (``scene.json`` ``support_friction``): pressed on
+            it, the tissue slides once its tangential speed beats 1x the normal speed it loses. A support that
+            sticks while pressed decided the calibration by switching nodes on and off at a float's last
+            bit; with 1, EndoNeRF pulling's prediction beats the prior and zero motion on both measures and
+            its calibration stops by its tolerance (docs/REAL_VIDEO.md section 13).
         box_margin: free space around the tissue in the sim box, as a fraction of its extent per side.
         cells_across: grid cells across ``thickness`` (:mod:`endogsim.scene.discretisation`).
         gravity: magnitude (m/s^2) and ``gravity_direction`` (frame 0's camera coordinates; +y is image
@@ -106,6 +111,7 @@ class RealScenario:
     border: float = 0.004
     border_motion: Literal["tracked", "still"] = "tracked"
     back_face: str = "support"
+    support_friction: float = 1.0
     box_margin: float = 0.1
     cells_across: int = 3
     gravity: float = 9.81
@@ -124,6 +130,8 @@ class RealScenario:
             raise DataError(f"scenario.grasping {self.grasping!r} must be graspers|all|none")
         if self.border_motion not in ("tracked", "still"):
             raise DataError(f"scenario.border_motion {self.border_motion!r} must be tracked|still")
+        if not (math.isfinite(self.support_friction) and self.support_friction >= 0):
+            raise DataError(f"scenario.support_friction {self.support_friction} must be a finite number >= 0")
 
 
 @dataclass
@@ -383,7 +391,8 @@ def _real_scenario(objects: list[dict], tissue_pts: np.ndarray, frame_dt: float,
         "box_lo": box_lo, "box_size": size, "gravity": g.tolist(), "frame_dt": frame_dt, "damping": sc.damping,
         "boundary_conditions": [{"type": "box_walls", "cells": 2}] + [
             {"type": "anchors", "object": o["name"], "back_face": sc.back_face, "border": sc.border,
-             "border_motion": sc.border_motion}
+             "border_motion": sc.border_motion,
+             **({"support_friction": sc.support_friction} if sc.back_face == "support" else {})}
             for o in objects if not o["rigid"]],
         "tools": [],
         "extrusion": {"along": "viewing_rays", "thickness": {o["name"]: sc.thickness for o in objects if not o["rigid"]}},
