@@ -367,3 +367,12 @@ def test_cli_info_bad_folder(tmp_path):
     assert r.exit_code == 2
     assert "poses" in r.output and "Traceback" not in r.output
     assert r.exception is None or isinstance(r.exception, SystemExit)
+
+
+def test_cli_run_and_validate_refuse_a_negative_support_friction_before_any_work(tmp_path):
+    root = make_endonerf(tmp_path / "s")
+    for cmd in ("run", "validate"):
+        r = CliRunner().invoke(_app(), [cmd, str(root), "--out", str(tmp_path / cmd), "--support-friction", "-1"])
+        assert r.exit_code == 2, r.output
+        assert "support_friction" in r.output and "Traceback" not in r.output
+        assert not (tmp_path / cmd / "recon").exists()

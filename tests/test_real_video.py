@@ -374,6 +374,10 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
         assert res["beats"][k] == all(c[w]["z"] < -c[w]["significant_z"] and c[w]["relative"] <= -1e-3
                                       for w in ("epe", "mse"))
     assert json.loads((run / "validate" / "validate.json").read_text())["train_frames"] == 4
+    # The tissue rests on the real-video scenario's Coulomb support (RealScenario.support_friction).
+    anchors = [b for b in json.loads((run / "scene" / "scene.json").read_text())["scenario"]["boundary_conditions"]
+               if b["type"] == "anchors"]
+    assert anchors and all(b["back_face"] == "support" and b["support_friction"] == 1.0 for b in anchors)
     html = (run / "report.html").read_text()
     assert "Held-out validation" in html and "Identifiability" in html and "Tissue coverage" in html
     # how the instrument was fitted, and frame 0 with its capsule drawn

@@ -295,3 +295,20 @@ def test_cached_scenes_from_an_older_generator_are_synthesized_again(tmp_path):
     meta["generator"] = GENERATOR_REVISION - 1
     (folder / "scene.json").write_text(json.dumps(meta))
     assert load_scene_spec(ensure_scene("tiny", tmp_path, frames=3)).generator == GENERATOR_REVISION
+
+
+def test_suite_tissue_rests_on_the_suites_coulomb_support_unless_the_scene_says_otherwise(monkeypatch):
+    import endogsim.synth.scenes as scenes
+    from endogsim.synth.suite import scene_spec
+
+    def anchors(built):
+        return [b for b in built.boundary_conditions if b["type"] == "anchors"]
+
+    assert scene_spec("tiny")["support_friction"] == 1.0
+    assert [b["support_friction"] for b in anchors(scenes.build_procedural("tiny", frames=2))] == [1.0]
+    spec = scene_spec("tiny")
+    spec["objects"] = [{**o, "anchors": {**o["anchors"], "support_friction": 0.3}} for o in spec["objects"]]
+    monkeypatch.setattr(scenes, "scene_spec", lambda name: spec)
+    assert [b["support_friction"] for b in anchors(scenes.build_procedural("tiny", frames=2))] == [0.3]
+    spec["objects"] = [{**o, "anchors": {"back_face": "fixed", "border": 0.006}} for o in spec["objects"]]
+    assert "support_friction" not in anchors(scenes.build_procedural("tiny", frames=2))[0]

@@ -32,6 +32,10 @@ _GRASPING_HELP = ("Which instruments hold the tissue their jaws close on (the ot
 _BORDER_HELP = ("How the band along the tissue's outline is held: tracked (it follows the reconstruction's tracks of "
                 "the tissue there: what moves the tissue beyond the view) | still (held at rest).")
 
+#: ``--support-friction`` of ``run`` and ``validate`` (``RealScenario.support_friction``).
+_FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed on it, the tissue slides once its "
+                  "tangential speed beats this times the normal speed it loses (0: frictionless).")
+
 
 def register(app: typer.Typer) -> None:
     """Add ``demo`` and ``run`` to the root ``app``."""
@@ -119,6 +123,7 @@ def register(app: typer.Typer) -> None:
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
         border_motion: str = typer.Option("tracked", "--border-motion", help=_BORDER_HELP),
+        support_friction: float = typer.Option(1.0, "--support-friction", help=_FRICTION_HELP),
     ) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
@@ -132,7 +137,8 @@ def register(app: typer.Typer) -> None:
         ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction,
-                             scenario=RealScenario(grasping=grasping, border_motion=border_motion))
+                             scenario=RealScenario(grasping=grasping, border_motion=border_motion,
+                                                   support_friction=support_friction))
         state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer(), fresh=fresh)
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")
 
@@ -155,6 +161,7 @@ def register(app: typer.Typer) -> None:
                                                  "DATA instead of reconstructing into OUT/recon."),
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
         border_motion: str = typer.Option("tracked", "--border-motion", help=_BORDER_HELP),
+        support_friction: float = typer.Option(1.0, "--support-friction", help=_FRICTION_HELP),
     ) -> None:
         """Calibrate the materials on the first frames of a video, predict the held-out rest with the tracked
         instrument motion, and compare with the filmed frames (EPE against the observed flow, masked PSNR)
@@ -180,7 +187,8 @@ def register(app: typer.Typer) -> None:
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
                              pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
                                                      scenario=RealScenario(grasping=grasping,
-                                                                           border_motion=border_motion)))
+                                                                           border_motion=border_motion,
+                                                                           support_friction=support_friction)))
         res = run_validate(data, out, cfg, on_stage=_stage_printer(), log=lambda m: console.print(m))
         cols, rows = validation_table(res)
         print_table(f"Held-out frames {res['train_frames']}..{res['train_frames'] + res['test_frames'] - 1} of "

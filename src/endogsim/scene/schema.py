@@ -120,8 +120,8 @@ class ObjectBoundary:
     Attributes:
         back_face: what holds the hidden back of the tissue (the deepest particle layer of its slab):
             "fixed" (glued to the anatomy behind), "support" (resting on it: pushed, never pulled, so it can be
-            lifted off; it does not slide while pressed), "slip_support" (the same without friction: wet tissue
-            on wet anatomy) or "free".
+            lifted off; pressed, it slides with Coulomb friction ``support_friction``, or without one does not
+            slide), "slip_support" (the same without friction: wet tissue on wet anatomy) or "free".
         border: width (metres) of the band along the object's outline that is held (the tissue goes on
             beyond the view); 0 for none.
         border_motion: how the band is held: "still" (at rest) or "tracked" (it follows the reconstruction's

@@ -7,9 +7,10 @@ writing live in :mod:`endogsim.synth.generate`.
 Boundary conditions (recorded in ``scene.json``; particles and their conditions are built from that
 description by :mod:`endogsim.scene.particles`, for the ground truth and for identification alike):
   * ``back_face``: the last layer of the slab (the hidden back of the tissue) is held ("fixed") or rests on
-    a support that pushes but never pulls, sticking while pressed ("support": the suite's), with Coulomb
-    friction (``support_friction``) or without ("slip_support"), except inside an optional ``release`` disc
-    (so a grasper can lift a flap);
+    a support that pushes but never pulls ("support": the suite's), with Coulomb friction (``support_friction``:
+    the suite's default ``support_friction`` fills it in, as real video's scenario does), sticking while pressed
+    (no coefficient) or frictionless ("slip_support"), except inside an optional ``release`` disc (so a grasper
+    can lift a flap);
   * ``border``: particles within ``border`` metres of an organ's outline are held (tissue continues
     outside the field of view), except where the outline meets another organ (it goes on into that one);
   * the sim box walls (2 grid cells) are fixed.
@@ -149,7 +150,10 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
         pts, col, uv = proc.tissue_surface(center, tuple(o["size"]), g_sp, tex_seed, height_fn=height,
                                            palette=o.get("palette", "mucosa"), mask_fn=mask)
         parts_g.append(proc.surface_gaussians(pts, col, g_sp, o["id"]))
-        bcs.append({"type": "anchors", "object": o["name"], **o.get("anchors", {})})
+        anchors = dict(o.get("anchors", {}))
+        if anchors.get("back_face") == "support" and spec.get("support_friction") is not None:
+            anchors.setdefault("support_friction", float(spec["support_friction"]))
+        bcs.append({"type": "anchors", "object": o["name"], **anchors})
 
     t = spec["tool"]
     objects.append(SceneObject(id=t["id"], name=t["name"], klass=t["class"], rigid=True,
