@@ -272,6 +272,141 @@ def test_hand_written_elastic_update_adjoint_equals_warps_generated_one():
     assert not any(r.any() for r in results[1][4:])  # consumed
 
 
+@pytest.mark.parametrize("model", ["neo_hookean", "stvk"])
+def test_hand_written_particle_kernel_adjoint_equals_warps_generated_one(model):
+    """The hand-written adjoint of particle_momentum (physics/transfer_adjoints.py) gives the adjoints of the
+    particles' v, C, F and of each object's E, nu and density that Warp's generated adjoint gives, for two
+    objects, pinned particles, an impulse and a force window, and particles compressed below the
+    neo-Hookean J clamp; both consume (zero) the adjoints of mass, momentum and affine momentum."""
+    import warp as wp
+
+    from endogsim.physics import kernels as K
+    from endogsim.physics import transfer_adjoints as A
+    from endogsim.physics.constitutive import model_id
+    from endogsim.physics.engine import adjoints_of, alloc_state, alloc_transfer
+
+    g, x, _, _, _, _, d, _, _ = _transfer_case(seed=4, P=64)
+    P = x.shape[0]
+    v, C = torch.randn(P, 3, generator=g), 0.3 * torch.randn(P, 3, 3, generator=g)
+    F = torch.eye(3) + 0.2 * torch.randn(P, 3, 3, generator=g)
+    F[0] = 0.01 * torch.eye(3)  # J = 1e-6, below the clamp
+    pm = K.ParticleModel()
+    pm.vol = wp.from_torch(1e-3 * (0.5 + torch.rand(P, generator=g)))
+    pm.obj = wp.from_torch((torch.arange(P) % 2).to(torch.int32))
+    pinned = torch.zeros(P, dtype=torch.int32)
+    pinned[5:15] = 1
+    pm.pinned, pm.held = wp.from_torch(pinned), wp.full(P, -1, dtype=wp.int32)
+    region = torch.full((P,), -1, dtype=torch.int32)
+    region[20:30], region[30:40] = 0, 1
+    pm.force_region = wp.from_torch(region)
+    forces = K.ForceTable()
+    forces.acc = wp.from_torch(torch.randn(2, 3, generator=g), dtype=wp.vec3)
+    forces.t0, forces.t1 = wp.array([0.1, 0.0], dtype=float), wp.array([-1.0, 1.0], dtype=float)  # impulse, window
+    t, dt = 0.1, 0.01
+    adj_out = [torch.randn(P, generator=g), torch.randn(P, 3, generator=g), torch.randn(P, 3, 3, generator=g)]
+
+    results = []
+    for hand in (False, True):
+        mats = K.MaterialTable()
+        mats.E = wp.array([3.0, 5.0], dtype=float, requires_grad=True)
+        mats.nu = wp.array([0.3, 0.45], dtype=float, requires_grad=True)
+        mats.rho = wp.array([1.0, 1.2], dtype=float, requires_grad=True)
+        mats.model = wp.full(2, model_id(model), dtype=wp.int32)
+        mats.yield_stress = wp.zeros(2, dtype=float)
+        s, tr = alloc_state(P, "cpu", True), alloc_transfer(P, "cpu", True)
+        for a, val in ((s.x, x), (s.v, v), (s.C, C), (s.F, F)):
+            wp.copy(a, wp.from_torch(val.contiguous(), dtype=a.dtype))
+        for a, val in zip((tr.mass.grad, tr.momentum.grad, tr.affine.grad), adj_out):
+            wp.copy(a, wp.from_torch(val.contiguous(), dtype=a.dtype))
+        inputs = [s, pm, mats, forces, d, t, dt, tr]
+        wp.launch(K.particle_momentum, dim=P, inputs=inputs, device="cpu")
+        if hand:
+            wp.launch(A.particle_momentum_adjoint, dim=P, device="cpu", inputs=[
+                *inputs, adjoints_of(s, K.ParticleState), adjoints_of(tr, K.ParticleTransfer),
+                mats.E.grad, mats.nu.grad, mats.rho.grad])
+        else:
+            tape = wp.Tape()
+            tape.record_launch(K.particle_momentum, P, 0, inputs, [], "cpu")
+            tape.backward()
+        results.append([wp.to_torch(a).clone() for a in (s.v.grad, s.C.grad, s.F.grad, mats.E.grad, mats.nu.grad,
+                                                          mats.rho.grad, tr.mass.grad, tr.momentum.grad,
+                                                          tr.affine.grad)])
+    names = ("v", "C", "F", "E", "nu", "rho", "mass", "momentum", "affine")
+    for name, generated, hand in zip(names, *results):
+        assert (generated - hand).abs().max() <= 1e-5 * generated.abs().max().clamp_min(1e-30), (
+            name, generated, hand)
+    assert all(r.abs().sum() > 0 for r in results[0][:6])
+    assert not any(r.any() for r in results[1][6:])  # consumed
+
+
+@pytest.mark.parametrize("sticky_walls", [0, 1])
+def test_hand_written_grid_update_adjoint_equals_warps_generated_one(sticky_walls):
+    """The hand-written adjoint of grid_update (physics/transfer_adjoints.py) gives the adjoints of the node
+    momenta and masses that Warp's generated adjoint gives, on a block of nodes (offset) that holds every
+    boundary condition kind (Coulomb friction sliding and sticking), collider nodes, empty nodes, the domain
+    walls (sticky or slip) and nodes over the speed limit; both consume (zero) the velocities' adjoints."""
+    import warp as wp
+
+    from endogsim.physics import kernels as K
+    from endogsim.physics import transfer_adjoints as A
+    from endogsim.warp_runtime import init_warp
+
+    init_warp()
+    n, g = 10, torch.Generator().manual_seed(5)
+    shape = (n, n, n)
+    m = torch.rand(shape, generator=g) + 0.2
+    m[torch.rand(shape, generator=g) < 0.1] = 0.0  # empty nodes
+    mv = torch.randn(*shape, 3, generator=g)
+    kind = torch.randint(0, 6, shape, generator=g, dtype=torch.int32)
+    nrm = torch.nn.functional.normalize(torch.randn(*shape, 3, generator=g), dim=-1)
+    friction = 2.0 * torch.rand(shape, generator=g)
+    col_w = (torch.rand(shape, generator=g) < 0.1).float()
+    d = K.Domain()
+    d.n, d.inv_dx, d.pad, d.sticky_walls, d.x_lo, d.x_hi = n, float(n), 2, sticky_walls, 0.0, 1.0
+    d.bc_kind = wp.from_torch(kind)
+    d.bc_normal = wp.from_torch(nrm.contiguous(), dtype=wp.vec3)
+    d.bc_friction = wp.from_torch(friction)
+    d.gravity = wp.vec3(0.0, -1.0, 0.5)
+    col = K.ColliderGrid()
+    col.w = wp.from_torch(col_w)
+    col.mv = wp.from_torch(torch.randn(*shape, 3, generator=g).contiguous(), dtype=wp.vec3)
+    adj_v = torch.randn(*shape, 3, generator=g)
+    offset, dim = wp.vec3i(1, 0, 1), (8, 10, 9)
+    # v_max below the largest speeds: some nodes are limited. dt, damping as a substep's.
+    args = [col, 1, d, 0.05, 0.97, 2.0, offset]
+
+    results = []
+    for hand in (False, True):
+        grid = K.GridState()
+        grid.m = wp.from_torch(m.clone(), requires_grad=True)
+        grid.mv = wp.from_torch(mv.clone().contiguous(), dtype=wp.vec3, requires_grad=True)
+        grid.v = wp.zeros(shape, dtype=wp.vec3, requires_grad=True)
+        wp.copy(grid.v.grad, wp.from_torch(adj_v.clone().contiguous(), dtype=wp.vec3))
+        inputs = [grid, *args]
+        wp.launch(K.grid_update, dim=dim, inputs=inputs, device="cpu")
+        if hand:
+            wp.launch(A.grid_update_adjoint, dim=dim, device="cpu",
+                      inputs=[*inputs, grid.v.grad, grid.mv.grad, grid.m.grad])
+        else:
+            tape = wp.Tape()
+            tape.record_launch(K.grid_update, dim, 0, inputs, [], "cpu")
+            tape.backward()
+        results.append([wp.to_torch(a).clone() for a in (grid.mv.grad, grid.m.grad, grid.v.grad)])
+    speeds = wp.to_torch(grid.v).norm(dim=-1)
+    assert (speeds > 1.999).sum() > 10  # the speed limit acts
+    v0 = (mv / m.clamp_min(1e-12)[..., None] + 0.05 * torch.tensor([0.0, -1.0, 0.5])) * 0.97
+    vn = (v0 * nrm).sum(-1)
+    slip = (v0 - vn[..., None] * nrm).norm(dim=-1) + friction * vn
+    pressed = (kind == K.BC_COULOMB_SUPPORT) & (vn < 0) & (m > 0) & (col_w == 0)
+    assert (pressed & (slip > 0)).sum() > 5 and (pressed & (slip <= 0)).sum() > 5  # Coulomb: slides and sticks
+    # The same products in another order: equal to float32 rounding, relative to each array's scale.
+    for name, generated, hand in zip(("momentum", "mass", "velocity"), *results):
+        assert (generated - hand).abs().max() <= 1e-5 * generated.abs().max(), (name, (generated - hand).abs().max())
+    assert results[0][0].abs().sum() > 0 and results[0][1].abs().sum() > 0
+    block = (slice(1, 9), slice(0, 10), slice(1, 10))
+    assert not results[1][2][block].any() and results[1][2].any()  # consumed in the block, kept outside it
+
+
 @pytest.mark.parametrize("mode", ["full", "frame", "last_substep"])
 def test_recomputing_the_next_segment_on_a_second_thread_gives_the_same_gradients(mode, monkeypatch):
     """The backward pass recomputes the next frame's segment on a second thread while this frame's adjoints

@@ -28,6 +28,7 @@ from endogsim.errors import SimulationError
 from endogsim.physics import kernels as K
 from endogsim.physics import transfer_adjoints as A
 from endogsim.physics.config import NORMAL_KINDS, MPMConfig, Scenario
+from endogsim.physics.constitutive import MODELS
 from endogsim.physics.particles import Particles
 from endogsim.warp_runtime import init_warp
 
@@ -397,11 +398,12 @@ class MPMEngine:
 
     def substep(self, s_in: K.ParticleState, s_out: K.ParticleState, buf: GridBuffers, mats: K.MaterialTable,
                 step: Timestep, frame: int, sub: int, tape: wp.Tape | None = None,
-                replays: Replays | None = None, elastic: bool = False) -> None:
-        """Advance ``s_in`` by one substep into ``s_out``. On a ``tape``, the stencil transfers record their
-        hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), and so does the particle update
-        when ``elastic`` (no material of ``mats`` yields); the rest Warp's generated ones. Without a tape,
-        ``replays`` (if given) replays the launches recorded at an earlier substep."""
+                replays: Replays | None = None, elastic: bool = False, hand_stress: bool = False) -> None:
+        """Advance ``s_in`` by one substep into ``s_out``. On a ``tape``, the stencil transfers and the grid
+        update record their hand-written adjoints (:mod:`endogsim.physics.transfer_adjoints`), so does the
+        particle update when ``elastic`` (no material of ``mats`` yields) and the particle kernel when
+        ``hand_stress`` (every model of ``mats`` gives its stress's adjoint); the rest Warp's generated
+        ones. Without a tape, ``replays`` (if given) replays the launches recorded at an earlier substep."""
         dev, dt = self.device, step.dt
 
         def run(kernel, dim, inputs, slot: int = 0) -> None:
@@ -425,7 +427,17 @@ class MPMEngine:
                 run(K.collider_to_grid, frames[0].shape[0], [frames[frame], frames[frame + 1], alpha,
                                                              self.inv_frame_dt, radius, self.domain, buf.col], c)
         tr, grid = buf.transfer, buf.grid
-        launch(K.particle_momentum, self.P, [s_in, self.particles, mats, self.forces, self.domain, t, dt, tr])
+        momentum = [s_in, self.particles, mats, self.forces, self.domain, t, dt, tr]
+        if tape is not None and hand_stress:
+            run(K.particle_momentum, self.P, momentum)
+            # Names of their own: the lambdas read them when the tape runs backwards.
+            momentum_adjoints = [adjoints_of(s_in, K.ParticleState), adjoints_of(tr, K.ParticleTransfer),
+                                 mats.E.grad, mats.nu.grad, mats.rho.grad]
+            tape.record_func(lambda: wp.launch(A.particle_momentum_adjoint, dim=self.P, device=dev, inputs=[
+                *momentum, *momentum_adjoints], record_tape=False),
+                arrays=[s_in.v, s_in.C, s_in.F, mats.E, mats.nu, mats.rho, tr.mass, tr.momentum, tr.affine])
+        else:
+            launch(K.particle_momentum, self.P, momentum)
         run(K.p2g_scatter, self.P, [s_in.x, tr, self.domain, grid])
         if tape is not None:
             tape.record_func(lambda: wp.launch(A.p2g_scatter_adjoint, dim=self.P, device=dev, inputs=[
@@ -434,9 +446,14 @@ class MPMEngine:
         lo, hi = self.active_block(s_in.x)
         damping_factor = math.exp(-self.frame_damping[min(frame, self.T - 1)] * dt)
         v_max = 1.0 / (self.inv_dx * dt)  # one cell per substep (sim units)
-        launch(K.grid_update, tuple(int(h - l + 1) for l, h in zip(lo, hi)), [
-            buf.grid, buf.col, 1 if self.colliders else 0, self.domain, dt, damping_factor, v_max,
-            wp.vec3i(*[int(v) for v in lo])])
+        block = tuple(int(h - l + 1) for l, h in zip(lo, hi))
+        update_grid = [buf.grid, buf.col, 1 if self.colliders else 0, self.domain, dt, damping_factor, v_max,
+                       wp.vec3i(*[int(v) for v in lo])]
+        run(K.grid_update, block, update_grid)
+        if tape is not None:
+            tape.record_func(lambda: wp.launch(A.grid_update_adjoint, dim=block, device=dev, inputs=[
+                *update_grid, grid.v.grad, grid.mv.grad, grid.m.grad], record_tape=False),
+                arrays=[grid.m, grid.mv, grid.v])
         held = K.HeldTargets()
         held.x0, held.x1 = self.held_frames[frame], self.held_frames[frame + 1]
         held.alpha_end, held.inv_frame_dt = (sub + 1) / step.substeps, self.inv_frame_dt
@@ -529,11 +546,12 @@ class MPMEngine:
         seg.used = True
         load_state(seg.states[0], start)
         elastic = not mats.yield_stress.numpy().any()
+        hand_stress = mats.E.requires_grad and all(MODELS[m].hand_adjoint for m in set(mats.model.numpy().tolist()))
         tape = wp.Tape()
         try:
             for i, g in enumerate(seg.grids):
                 self.substep(seg.states[i], seg.states[i + 1], g, mats, step, frame, first_sub + i, tape,
-                             elastic=elastic)
+                             elastic=elastic, hand_stress=hand_stress)
         except BaseException:
             self.release_buffers()  # never reuse buffers a failed recording left half written
             raise

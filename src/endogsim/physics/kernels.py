@@ -9,8 +9,9 @@ advection).
 The two stencil transfers (``p2g_scatter``, ``g2p_gather``) have hand-written adjoints in
 :mod:`endogsim.physics.transfer_adjoints`: Warp's generated ones unroll the 27-node stencil with every
 intermediate kept, and took 4-6x their forward (measured: 60% of an identification iteration's kernel
-time). The per-particle kernels around them keep Warp's generated adjoints (the constitutive models,
-plasticity, anchors and held particles are differentiated by Warp).
+time). So do the grid update, the particle update without plasticity and the particle kernel for
+constitutive models that give their stress's adjoint; the rest (plasticity, models that use the polar
+rotation) keep Warp's generated adjoints.
 
 Inputs are packed in structs, Newton-style: :class:`ParticleState` (what a substep advances),
 :class:`ParticleTransfer` (what a substep carries between particles and grid), :class:`ParticleModel`
@@ -226,6 +227,40 @@ def kirchhoff_stress(model: int, F: wp.mat33, R: wp.mat33, mu: float, lam: float
 
 
 @wp.func
+def _no_stress_adjoint(F: wp.mat33, R: wp.mat33, mu: float, lam: float, adj_tau: wp.mat33):
+    return wp.mat33(0.0), float(0.0), float(0.0)
+
+
+@wp.func
+def kirchhoff_stress_adjoint(model: int, F: wp.mat33, R: wp.mat33, mu: float, lam: float, adj_tau: wp.mat33):
+    """(adj_F, adj_mu, adj_lam) of adj_tau : :func:`kirchhoff_stress` for a model with a ``stress_adjoint``
+    (zeros for the others: the engine then keeps Warp's generated adjoint)."""
+    adj_F = wp.mat33(0.0)
+    adj_mu = float(0.0)
+    adj_lam = float(0.0)
+    for i in range(wp.static(len(MODELS))):
+        if model == i:
+            adj_F, adj_mu, adj_lam = wp.static(MODELS[i].stress_adjoint or _no_stress_adjoint)(F, R, mu, lam, adj_tau)
+    return adj_F, adj_mu, adj_lam
+
+
+@wp.func
+def forced_velocity(v: wp.vec3, r: int, forces: ForceTable, t: float, dt: float):
+    """The velocity after force region ``r``'s acceleration over the substep [t, t + dt) (an impulse: its
+    whole velocity change in the substep that starts at its t0); ``r`` < 0: none."""
+    vp = v
+    if r >= 0:
+        t0 = forces.t0[r]
+        t1 = forces.t1[r]
+        if t1 < 0.0:
+            if t >= t0 and t < t0 + dt:
+                vp = vp + forces.acc[r]
+        elif t >= t0 and t < t1:
+            vp = vp + dt * forces.acc[r]
+    return vp
+
+
+@wp.func
 def von_mises_return(F: wp.mat33, yield_stress: float, mu: float):
     """Elastic part of F after von Mises plasticity: the deviatoric Hencky strain is projected onto the
     cylinder of radius yield_stress / (2 mu) (F = F^E F^P; the plastic part is never needed for the stress)."""
@@ -307,16 +342,7 @@ def particle_momentum(
     tau = kirchhoff_stress(model, Fp, R, ml[0], ml[1])
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * state.C[p]
 
-    vp = state.v[p]
-    r = particles.force_region[p]
-    if r >= 0:
-        t0 = forces.t0[r]
-        t1 = forces.t1[r]
-        if t1 < 0.0:
-            if t >= t0 and t < t0 + dt:
-                vp = vp + forces.acc[r]
-        elif t >= t0 and t < t1:
-            vp = vp + dt * forces.acc[r]
+    vp = forced_velocity(state.v[p], particles.force_region[p], forces, t, dt)
     out.mass[p] = mass
     out.momentum[p] = mass * vp
     out.affine[p] = affine

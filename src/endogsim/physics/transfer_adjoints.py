@@ -1,11 +1,15 @@
 """Hand-written adjoints of kernels of an MPM substep (:mod:`endogsim.physics.kernels`): the two stencil
-transfers, and the particle update when no material yields.
+transfers, the grid update, the particle update when no material yields, and the particle kernel for
+constitutive models that give their stress's adjoint.
 
 Warp generates an adjoint for every kernel by replaying it and keeping each intermediate of the unrolled
 27-node stencil; for ``p2g`` and ``g2p`` those adjoints took 4-6x their forward kernels on a CPU, 60% of
 an identification iteration's kernel time. The adjoints here gather what each node contributes in one pass
 over the stencil, like the forward. The particle update's generated adjoint took 2.6x its forward (it
-replays the kernel, plasticity branch included); without plasticity its adjoint is a few products. Each
+replays the kernel, plasticity branch included); without plasticity its adjoint is a few products. The
+grid update's and the particle kernel's generated adjoints took 3.4x and 3.1x their forwards (replaying
+every boundary-condition branch, every registered model's stress); by hand 1.3x and 1.5x (EndoNeRF
+pulling, 63 frames: an identification iteration 22-25% shorter, docs/IDENTIFICATION.md section 2). Each
 reads the adjoints of its kernel's outputs and adds to those of its inputs (or sets them, for inputs that
 no other kernel reads); :meth:`endogsim.physics.engine.MPMEngine.substep` records them on the Warp tape in
 place of the generated ones.
@@ -20,23 +24,91 @@ from __future__ import annotations
 import warp as wp
 
 from endogsim.physics.kernels import (
+    BC_COULOMB_SUPPORT,
+    BC_SLIP,
+    BC_SLIP_SUPPORT,
+    BC_STICKY,
+    BC_SUPPORT,
+    ColliderGrid,
     Domain,
+    ForceTable,
     GridState,
+    MaterialTable,
     ParticleModel,
     ParticleState,
     ParticleTransfer,
     apic_node_terms,
     bspline_derivatives,
+    forced_velocity,
+    kirchhoff_stress_adjoint,
+    lame,
     quadratic_stencil,
 )
 
-__all__ = ["p2g_scatter_adjoint", "g2p_gather_adjoint", "g2p_update_elastic_adjoint"]
+__all__ = ["particle_momentum_adjoint", "p2g_scatter_adjoint", "grid_update_adjoint", "g2p_gather_adjoint",
+           "g2p_update_elastic_adjoint"]
 
 
 @wp.func
 def weight_gradient(W: wp.mat33, dW: wp.mat33, i: int, j: int, k: int):
     """d w_ijk / d fx (grid units) of the stencil weight w_ijk = W[i, 0] W[j, 1] W[k, 2]."""
     return wp.vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+
+
+@wp.kernel(enable_backward=False)
+def particle_momentum_adjoint(
+    state: ParticleState,
+    particles: ParticleModel,
+    mats: MaterialTable,
+    forces: ForceTable,
+    domain: Domain,
+    t: float,
+    dt: float,
+    out: ParticleTransfer,
+    adj_state: ParticleState,
+    adj_out: ParticleTransfer,
+    adj_E: wp.array(dtype=float),
+    adj_nu: wp.array(dtype=float),
+    adj_rho: wp.array(dtype=float),
+):
+    """Adjoint of :func:`~endogsim.physics.kernels.particle_momentum` for constitutive models without the
+    polar rotation that give a ``stress_adjoint``: from the adjoints of the particle's mass, momentum and
+    affine momentum (read, then zeroed: consumed) to those of its v, C and F (added to) and of its object's
+    E, nu and density (accumulated over particles).
+
+    affine = c tau(F; mu, lam) + m C with c = -dt V 4 / dx^2; momentum = m v' (v' = v and any force region's
+    velocity change, which does not depend on v); m = rho V (0 when pinned); (mu, lam) = lame(E, nu)."""
+    p = wp.tid()
+    o = particles.obj[p]
+    E = mats.E[o]
+    nu = mats.nu[o]
+    ml = lame(E, nu)
+    vol = particles.vol[p]
+    mass = mats.rho[o] * vol
+    pinned = particles.pinned[p] != 0
+    if pinned:
+        mass = 0.0
+    inv_dx = domain.inv_dx
+    g_affine = adj_out.affine[p]
+    g_momentum = adj_out.momentum[p]
+    vp = forced_velocity(state.v[p], particles.force_region[p], forces, t, dt)
+
+    adj_tau = (-dt * vol * 4.0 * inv_dx * inv_dx) * g_affine
+    g_F, g_mu, g_lam = kirchhoff_stress_adjoint(mats.model[o], state.F[p], wp.identity(n=3, dtype=float),
+                                                ml[0], ml[1], adj_tau)
+    adj_state.F[p] = adj_state.F[p] + g_F
+    adj_state.C[p] = adj_state.C[p] + mass * g_affine
+    adj_state.v[p] = adj_state.v[p] + mass * g_momentum
+    if not pinned:
+        g_mass = adj_out.mass[p] + wp.dot(g_momentum, vp) + wp.ddot(g_affine, state.C[p])
+        wp.atomic_add(adj_rho, o, g_mass * vol)
+    # mu = E / (2 (1 + nu)), lam = E nu / ((1 + nu)(1 - 2 nu)).
+    d = (1.0 + nu) * (1.0 - 2.0 * nu)
+    wp.atomic_add(adj_E, o, g_mu / (2.0 * (1.0 + nu)) + g_lam * nu / d)
+    wp.atomic_add(adj_nu, o, -g_mu * E / (2.0 * (1.0 + nu) * (1.0 + nu)) + g_lam * E * (1.0 + 2.0 * nu * nu) / (d * d))
+    adj_out.mass[p] = 0.0
+    adj_out.momentum[p] = wp.vec3(0.0)
+    adj_out.affine[p] = wp.mat33(0.0)
 
 
 @wp.kernel(enable_backward=False)
@@ -115,6 +187,110 @@ def p2g_scatter_adjoint(
     adj_mass[p] = g_mass
     adj_momentum[p] = g_q
     adj_affine[p] = g_affine
+
+
+@wp.kernel(enable_backward=False)
+def grid_update_adjoint(
+    grid: GridState,
+    col: ColliderGrid,
+    has_colliders: int,
+    domain: Domain,
+    dt: float,
+    damping_factor: float,
+    v_max: float,
+    offset: wp.vec3i,
+    adj_v: wp.array3d(dtype=wp.vec3),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_m: wp.array3d(dtype=float),
+):
+    """Adjoint of :func:`~endogsim.physics.kernels.grid_update` (same launch): from the adjoints of the node
+    velocities (read, then zeroed: consumed) to those of the node momenta and masses (added to).
+
+    The node velocity is v = (mv / m + dt g) damping, then mapped in turn by the node's boundary condition,
+    the domain walls and the speed limit; a collider's node takes the collider's velocity, which no grid
+    quantity moves. The forward chain is recomputed, then each map's Jacobian is applied transposed, in
+    reverse. Each map is a projection or a rescaling, so its Jacobian is a few products, where Warp's
+    generated adjoint replays every branch of the kernel (3x the forward's time)."""
+    ti, tj, tk = wp.tid()
+    i = ti + offset[0]
+    j = tj + offset[1]
+    k = tk + offset[2]
+    g = adj_v[i, j, k]
+    adj_v[i, j, k] = wp.vec3(0.0)
+    m = grid.m[i, j, k]
+    if m <= 1.0e-12:
+        return
+    if has_colliders != 0:
+        if col.w[i, j, k] > 0.0:
+            return
+    mv = grid.mv[i, j, k]
+    v0 = (mv / m + dt * domain.gravity) * damping_factor
+
+    # Forward: the boundary condition (v0 -> v1), the walls (v1 -> v2, a per-axis mask), the speed limit.
+    kind = domain.bc_kind[i, j, k]
+    if kind == BC_STICKY:
+        return
+    nrm = wp.vec3(0.0)
+    if kind != 0:
+        nrm = domain.bc_normal[i, j, k]
+    vn = wp.dot(v0, nrm)
+    v1 = v0
+    if kind == BC_SLIP:
+        v1 = v0 - vn * nrm
+    elif kind == BC_SUPPORT:
+        if vn < 0.0:
+            return
+    elif kind == BC_COULOMB_SUPPORT:
+        if vn < 0.0:
+            vt = v0 - vn * nrm
+            st = wp.length(vt)
+            slip = st + domain.bc_friction[i, j, k] * vn
+            if slip <= 0.0:
+                return
+            v1 = vt * (slip / st)
+    elif kind == BC_SLIP_SUPPORT:
+        if vn < 0.0:
+            v1 = v0 - vn * nrm
+    n = domain.n
+    pad = domain.pad
+    idx = wp.vec3i(i, j, k)
+    keep = wp.vec3(1.0)
+    v2 = v1
+    for a in range(3):
+        low = idx[a] < pad
+        high = idx[a] >= n - pad
+        if low or high:
+            if domain.sticky_walls != 0:
+                return
+            if (low and v1[a] < 0.0) or (high and v1[a] > 0.0):
+                keep[a] = 0.0
+                v2[a] = 0.0
+
+    # Reverse.
+    speed = wp.length(v2)
+    if speed > v_max:
+        vh = v2 / speed
+        g = (v_max / speed) * (g - wp.dot(g, vh) * vh)
+    g = wp.cw_mul(g, keep)
+    if kind == BC_SLIP:
+        g = g - wp.dot(g, nrm) * nrm
+    elif kind == BC_COULOMB_SUPPORT:
+        if vn < 0.0:
+            # v1 = s vt with s = 1 + mu vn / st, vt = v0 - vn n, st = |vt|.
+            mu = domain.bc_friction[i, j, k]
+            vt = v0 - vn * nrm
+            st = wp.length(vt)
+            s = (st + mu * vn) / st
+            g_s = wp.dot(g, vt)
+            g_vt = s * g + (g_s * (-mu * vn / (st * st)) / st) * vt
+            g_vn = g_s * mu / st - wp.dot(g_vt, nrm)
+            g = g_vt + g_vn * nrm
+    elif kind == BC_SLIP_SUPPORT:
+        if vn < 0.0:
+            g = g - wp.dot(g, nrm) * nrm
+    g_base = damping_factor * g
+    adj_mv[i, j, k] = adj_mv[i, j, k] + g_base / m
+    adj_m[i, j, k] = adj_m[i, j, k] - wp.dot(g_base, mv) / (m * m)
 
 
 @wp.kernel(enable_backward=False)

@@ -35,6 +35,11 @@ class ConstitutiveModel:
         reference: PyTorch function (F [N,3,3], mu [N], lam [N]) -> tau [N,3,3] (any units, float64).
         description: one line for help texts.
         uses_rotation: whether ``stress`` reads R.
+        stress_adjoint: optional Warp function (F, R, mu, lam, adj_tau: mat33) -> (adj_F: mat33, adj_mu, adj_lam),
+            the adjoint of ``stress`` (R held fixed). With it the identification's backward pass runs the
+            hand-written adjoint of the particle kernel (:func:`endogsim.physics.transfer_adjoints.
+            particle_momentum_adjoint`) instead of Warp's generated one, which replays the kernel (3x its
+            forward); without it (or with ``uses_rotation``), Warp's.
     """
 
     name: str
@@ -42,6 +47,12 @@ class ConstitutiveModel:
     reference: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
     description: str
     uses_rotation: bool = False
+    stress_adjoint: wp.Function | None = None
+
+    @property
+    def hand_adjoint(self) -> bool:
+        """Whether the backward pass may use the hand-written particle-kernel adjoint for this model."""
+        return self.stress_adjoint is not None and not self.uses_rotation
 
 
 #: Registered models in id order (a particle's model id indexes this list).
