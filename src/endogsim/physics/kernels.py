@@ -206,6 +206,14 @@ def lame(E: float, nu: float):
 
 
 @wp.func
+def lame_adjoint(E: float, nu: float, adj_mu: float, adj_lam: float):
+    """(adj_E, adj_nu) of adj_mu mu + adj_lam lam through :func:`lame`."""
+    d = (1.0 + nu) * (1.0 - 2.0 * nu)
+    return wp.vec2(adj_mu / (2.0 * (1.0 + nu)) + adj_lam * nu / d,
+                   -adj_mu * E / (2.0 * (1.0 + nu) * (1.0 + nu)) + adj_lam * E * (1.0 + 2.0 * nu * nu) / (d * d))
+
+
+@wp.func
 def uses_rotation(model: int):
     """1 when the registered constitutive model ``model`` reads the polar rotation of F, else 0."""
     r = int(0)

@@ -25,6 +25,7 @@ import warp as wp
 
 from endogsim.physics.kernels import (
     BC_COULOMB_SUPPORT,
+    BC_FREE,
     BC_SLIP,
     BC_SLIP_SUPPORT,
     BC_STICKY,
@@ -42,6 +43,7 @@ from endogsim.physics.kernels import (
     forced_velocity,
     kirchhoff_stress_adjoint,
     lame,
+    lame_adjoint,
     quadratic_stencil,
 )
 
@@ -102,10 +104,9 @@ def particle_momentum_adjoint(
     if not pinned:
         g_mass = adj_out.mass[p] + wp.dot(g_momentum, vp) + wp.ddot(g_affine, state.C[p])
         wp.atomic_add(adj_rho, o, g_mass * vol)
-    # mu = E / (2 (1 + nu)), lam = E nu / ((1 + nu)(1 - 2 nu)).
-    d = (1.0 + nu) * (1.0 - 2.0 * nu)
-    wp.atomic_add(adj_E, o, g_mu / (2.0 * (1.0 + nu)) + g_lam * nu / d)
-    wp.atomic_add(adj_nu, o, -g_mu * E / (2.0 * (1.0 + nu) * (1.0 + nu)) + g_lam * E * (1.0 + 2.0 * nu * nu) / (d * d))
+    g_E_nu = lame_adjoint(E, nu, g_mu, g_lam)
+    wp.atomic_add(adj_E, o, g_E_nu[0])
+    wp.atomic_add(adj_nu, o, g_E_nu[1])
     adj_out.mass[p] = 0.0
     adj_out.momentum[p] = wp.vec3(0.0)
     adj_out.affine[p] = wp.mat33(0.0)
@@ -231,10 +232,14 @@ def grid_update_adjoint(
     if kind == BC_STICKY:
         return
     nrm = wp.vec3(0.0)
-    if kind != 0:
+    if kind != BC_FREE:
         nrm = domain.bc_normal[i, j, k]
     vn = wp.dot(v0, nrm)
     v1 = v0
+    # Coulomb sliding: v1 = s vt with s = 1 + mu vn / st, vt = v0 - vn n, st = |vt| (kept for the reverse).
+    mu = float(0.0)
+    vt = wp.vec3(0.0)
+    st = float(0.0)
     if kind == BC_SLIP:
         v1 = v0 - vn * nrm
     elif kind == BC_SUPPORT:
@@ -242,9 +247,10 @@ def grid_update_adjoint(
             return
     elif kind == BC_COULOMB_SUPPORT:
         if vn < 0.0:
+            mu = domain.bc_friction[i, j, k]
             vt = v0 - vn * nrm
             st = wp.length(vt)
-            slip = st + domain.bc_friction[i, j, k] * vn
+            slip = st + mu * vn
             if slip <= 0.0:
                 return
             v1 = vt * (slip / st)
@@ -276,10 +282,6 @@ def grid_update_adjoint(
         g = g - wp.dot(g, nrm) * nrm
     elif kind == BC_COULOMB_SUPPORT:
         if vn < 0.0:
-            # v1 = s vt with s = 1 + mu vn / st, vt = v0 - vn n, st = |vt|.
-            mu = domain.bc_friction[i, j, k]
-            vt = v0 - vn * nrm
-            st = wp.length(vt)
             s = (st + mu * vn) / st
             g_s = wp.dot(g, vt)
             g_vt = s * g + (g_s * (-mu * vn / (st * st)) / st) * vt
