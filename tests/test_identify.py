@@ -12,12 +12,19 @@ import torch
 
 from endogsim.errors import DataError, MaterialError, SimulationError
 from endogsim.identify import IdentifyConfig, identify
-from endogsim.identify.optimize import NOT_IDENTIFIABLE, project_into_search_box, stable_log10_E_max
+from endogsim.identify.loss import identification_loss, loss_residuals
+from endogsim.identify.optimize import (
+    NOT_IDENTIFIABLE,
+    prepare_observations,
+    project_into_search_box,
+    stable_log10_E_max,
+)
 from endogsim.identify.report import write_outputs
 from endogsim.materials.field import MaterialField, MaterialRecord
 from endogsim.physics import capsule_collider_points
 from endogsim.scene.discretisation import refine
 from endogsim.scene.folder import coarsened, load_sim_scene
+from endogsim.scene.forward import render_sequence, simulate_materials
 
 FRAMES = 10  # the whole ``tiny`` clip: its first frames alone barely depend on E (the probe drives them)
 
@@ -445,3 +452,66 @@ def test_shared_scale_rprop_travels_far_settles_and_steps_weakly_observed_object
         (p * torch.tensor([1.0, 0.2])).sum().backward()
         o.step()
     assert torch.equal(x.detach(), y.detach()) and abs(float(x[0]) + 0.22) < 1e-6
+
+
+# ---- Levenberg-Marquardt (optimizer "lm"; its numerics: tests/test_levenberg_marquardt.py) ----------------------
+
+@pytest.mark.parametrize("loss", ["joint", "joint_track", "render", "flow"])
+def test_the_residuals_square_to_the_loss(problem, loss):
+    """sum r^2 is the identification loss of every preset (the track term where the scene has tracks), to the
+    loss's float32 rounding."""
+    cfg = IdentifyConfig(loss=loss)
+    obs, cam = prepare_observations(problem, cfg, None)
+    fld = field_from_truth(problem, 2.0)
+    with torch.no_grad():
+        sim = simulate_materials(problem, fld.simulator_materials(), cfg.grad_mode)
+        rendered = render_sequence(problem, sim.positions, sim.F, cam, frames=range(0, problem.num_frames, 2))
+    total = identification_loss(rendered, obs, cfg.term_weights()).parts["total"]
+    r = loss_residuals(rendered, obs, cfg.term_weights())
+    assert r.dtype == torch.float64 and total > 0
+    assert float(r.square().sum()) == pytest.approx(total, rel=1e-6)  # the loss's terms sum in float32
+
+
+def lm_config(**kw) -> IdentifyConfig:
+    return IdentifyConfig(**{"optimizer": "lm", "iters": 6, "intervals": False, "time_budget": None,
+                             "frame_stride": 2, **kw})
+
+
+@pytest.fixture(scope="module")
+def lm_run(problem, tmp_path_factory):
+    d = tmp_path_factory.mktemp("lm_run")
+    return identify(problem, field_from_truth(problem, 2.0, nu=0.47), lm_config(), run_dir=d)
+
+
+def test_lm_identification_lowers_the_loss_and_stops_by_its_tolerance(problem, lm_run):
+    """From E 2x too stiff the loss falls at every iteration; the run ends by its tolerance (or its
+    iterations) with E closer to the truth than where it started, and the history says how it stepped."""
+    res = lm_run
+    losses = [h["loss"] for h in res.history]
+    assert all(b < a for a, b in zip(losses, losses[1:]))
+    assert res.stopped in ("converged", "iters")
+    true_E = next(o.E for o in problem.spec.objects if o.id == 1)
+    E = res.field[1].E
+    assert abs(math.log10(E / true_E)) < abs(math.log10(2.0)), E
+    first = res.history[0]
+    assert first["grad_log10_E"][0] > 0  # too stiff: the loss falls as E falls
+    assert {"damping", "predicted_gain"} <= set(first)
+
+
+def test_an_interrupted_lm_run_resumes_to_the_same_result(problem, lm_run, tmp_path):
+    d = tmp_path / "resume"
+    init = field_from_truth(problem, 2.0, nu=0.47)
+    part = identify(problem, init, lm_config(), run_dir=d, stop_after=2)
+    assert part.stopped == "interrupted" and part.iterations == 2
+    done = identify(problem, init, lm_config(), run_dir=d)
+    assert done.field[1].E == lm_run.field[1].E and done.field[1].nu == lm_run.field[1].nu
+    assert [h["loss"] for h in done.history] == [h["loss"] for h in lm_run.history]
+
+
+def test_lm_identification_does_not_depend_on_how_many_simulations_run_at_a_time(problem, lm_run, monkeypatch):
+    from endogsim.scene.folder import SimScene
+
+    monkeypatch.setattr(SimScene, "independent_simulations", lambda self: 1)
+    one = identify(problem, field_from_truth(problem, 2.0, nu=0.47), lm_config())
+    assert one.field[1].E == lm_run.field[1].E
+    assert [h["loss"] for h in one.history] == [h["loss"] for h in lm_run.history]

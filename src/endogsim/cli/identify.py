@@ -32,7 +32,8 @@ def register(app: typer.Typer) -> None:
         global_material: bool = typer.Option(False, "--global-material",
                                               help="One (E, nu) for every deformable object (ablation)."),
         optimizer: str = typer.Option(_DEFAULT.optimizer, "--optimizer",
-                                      help="rprop (steps grow while the gradient keeps its direction) | adam."),
+                                      help="rprop (steps grow while the gradient keeps its direction) | adam | lm "
+                                           "(Levenberg-Marquardt, forward simulations side by side, no adjoint)."),
         lr: float = typer.Option(_DEFAULT.lr, "--lr", help="First step on log10 E (decades; nu's is 3x in raw units)."),
         render_scale: float = typer.Option(_DEFAULT.render_scale, "--render-scale",
                                            help="Render/compare at this fraction of the image size."),

@@ -13,7 +13,7 @@ from endogsim.priors.flow import FlowConfig
 LossKind = Literal["joint_track", "joint", "render", "flow", "track"]
 LOSSES: tuple[str, ...] = get_args(LossKind)
 #: Identification's optimisers (their implementations: ``endogsim.identify.optimize.OPTIMIZERS``).
-OptimizerKind = Literal["rprop", "adam"]
+OptimizerKind = Literal["rprop", "adam", "lm"]
 OPTIMIZER_KINDS: tuple[str, ...] = get_args(OptimizerKind)
 #: The automatic frame stride compares at least this many frames (the intervals' t-test then has 9 degrees of
 #: freedom or more): a 10-frame clip is compared at every frame, a 20-frame one at every second.
@@ -46,12 +46,17 @@ class IdentifyConfig:
             is ``lr``, then it grows by 1.2 while the gradient keeps its direction and halves when it turns,
             within 0.01-5 ``lr``; the schedule below is not used) or "adam"
             (:class:`~endogsim.identify.optimize.SharedScaleAdam`: steps of about ``lr`` on the schedule below,
-            so 10 iterations travel at most about half a decade of E; docs/IDENTIFICATION.md section 4).
+            so 10 iterations travel at most about half a decade of E; docs/IDENTIFICATION.md section 4) or "lm"
+            (Levenberg-Marquardt on the loss's residuals with a forward-difference Jacobian,
+            :mod:`endogsim.identify.levenberg_marquardt`: forward simulations only, one per parameter and
+            iteration, side by side on the cores; no gradient through the simulator, so ``grad_mode``, ``lr``,
+            ``lr_nu`` and ``max_grad_norm`` do not apply; docs/IDENTIFICATION.md section 2).
         lr: the first step on log10 E (decades).
         lr_nu: the first step on the raw (pre-sigmoid) Poisson parameter; larger than ``lr`` because the
             sigmoid is flat near the bounds, where tissue's nu (0.4 to 0.49) lies.
         lr_final_fraction: Adam's step decays exponentially to ``lr * lr_final_fraction`` at the last iteration.
         max_grad_norm: gradient clipping (L2 norm over all parameters).
+        lm_damping: Levenberg-Marquardt's first damping lambda (relative to the diagonal of J^T J).
         time_budget: a safety stop: no new iteration starts once this many seconds of optimisation have
             passed (None: no limit); the best iterate so far is kept and ``metrics.json`` says
             ``stopped_by_budget``. The learning-rate schedule follows ``iters`` only, so a stopped run is an
@@ -115,6 +120,7 @@ class IdentifyConfig:
     lr_nu: float = 0.3
     lr_final_fraction: float = 0.2
     max_grad_norm: float = 10.0
+    lm_damping: float = 1e-2
     time_budget: float | None = 480.0
     tol: float = 1e-3
     patience: int = 10
@@ -146,6 +152,8 @@ class IdentifyConfig:
             raise MaterialError(f"optimiser {self.optimizer!r} is not one of {', '.join(OPTIMIZER_KINDS)}")
         if not (self.lr > 0 and self.lr_nu > 0):
             raise MaterialError(f"lr = {self.lr}, lr_nu = {self.lr_nu} must be > 0")
+        if not self.lm_damping > 0:
+            raise MaterialError(f"lm_damping = {self.lm_damping} must be > 0")
         if not (0 < self.render_scale <= 1):
             raise MaterialError(f"render_scale = {self.render_scale} must lie in (0, 1]")
         if not 0 < self.E_min < self.E_max:

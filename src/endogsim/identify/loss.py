@@ -43,7 +43,8 @@ from endogsim.priors.flow import FlowConfig, flow_estimator
 from endogsim.registry import Registry
 from endogsim.scene.forward import Rendered
 
-__all__ = ["Observations", "make_observations", "observed_flow", "LOSS_TERMS", "LossValue", "identification_loss"]
+__all__ = ["Observations", "make_observations", "observed_flow", "LOSS_TERMS", "LOSS_RESIDUALS", "LossValue",
+           "identification_loss", "loss_residuals"]
 
 
 @dataclass
@@ -169,6 +170,51 @@ def track_term(rendered: Rendered, obs: Observations) -> tuple[list[int], torch.
     err = (rendered.tracks[sel] - obs.tracks[idx[sel]]).square().sum(-1)  # [K, N]
     m = obs.valid_tracks[idx[sel]].to(err.dtype)
     return idx[sel].tolist(), (err * m).sum(1) / m.sum(1).clamp_min(1.0)
+
+
+#: name -> residuals(rendered, observations) -> [n] (float64): each term's residuals, scaled so that their squares
+#: sum to the term's unweighted value over its frames (the term's pixels of frame t divided by the root of their
+#: count). Levenberg-Marquardt (:mod:`endogsim.identify.levenberg_marquardt`) fits them; every term of
+#: :data:`LOSS_TERMS` has one.
+LOSS_RESIDUALS: Registry[Callable[[Rendered, Observations], torch.Tensor]] = Registry("loss residual", MaterialError)
+
+
+def _scaled(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The entries of err [H, W, C] (or [N, C]) where mask [H, W] (or [N]) holds, over the root of the mask's count."""
+    return err[mask].double().flatten() / math.sqrt(max(int(mask.sum()), 1))
+
+
+@LOSS_RESIDUALS.register("render")
+def render_residuals(rendered: Rendered, obs: Observations) -> torch.Tensor:
+    """RGB residuals I^_t - I_t of the rendered frames t > 0 (see :func:`render_term`)."""
+    parts = [_scaled(rendered.rgb[k] - obs.frames[t], obs.valid_rgb[t])
+             for k, t in enumerate(rendered.frames) if t > 0]
+    return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+
+
+@LOSS_RESIDUALS.register("flow")
+def flow_residuals(rendered: Rendered, obs: Observations) -> torch.Tensor:
+    """Flow residuals U^_t - U_t (pixels; see :func:`flow_term`)."""
+    parts = [_scaled(rendered.flow[k] - obs.flow[t], obs.valid_flow[t])
+             for k, t in enumerate(rendered.frames[: rendered.flow.shape[0]])]
+    return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+
+
+@LOSS_RESIDUALS.register("track")
+def track_residuals(rendered: Rendered, obs: Observations) -> torch.Tensor:
+    """Track residuals x^_tn - x_tn (pixels; see :func:`track_term`)."""
+    if rendered.tracks is None or obs.tracks is None:
+        return torch.zeros(0, dtype=torch.float64)
+    parts = [_scaled(rendered.tracks[k] - obs.tracks[t], obs.valid_tracks[t])
+             for k, t in enumerate(rendered.frames) if t > 0]
+    return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+
+
+def loss_residuals(rendered: Rendered, obs: Observations, weights: Mapping[str, float]) -> torch.Tensor:
+    """[n] float64: every term's residuals times the root of its weight, so that their squares sum to
+    :func:`identification_loss`'s total (to rounding: the two sum in another order)."""
+    parts = [math.sqrt(w) * LOSS_RESIDUALS.get(name)(rendered, obs) for name, w in weights.items()]
+    return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
 
 
 @dataclass

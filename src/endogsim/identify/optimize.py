@@ -1,10 +1,13 @@
 """The identification loop: Rprop or Adam (one step scale per parameter tensor) on log10 E and bounded nu of the
-deformable objects (``IdentifyConfig.optimizer``, :data:`OPTIMIZERS`).
+deformable objects (``IdentifyConfig.optimizer``, :data:`OPTIMIZERS`), or Levenberg-Marquardt on the loss's
+residuals ("lm", :mod:`endogsim.identify.levenberg_marquardt`).
 
-One iteration: simulate from the frame-0 state with the current materials (differentiable MLS-MPM,
+One gradient iteration: simulate from the frame-0 state with the current materials (differentiable MLS-MPM,
 ``config.grad_mode``), render every frame and its Gaussian flow, evaluate the loss against the observed
 video and its estimated flow, back-propagate, clip the gradient, take an optimiser step, and project back into
-the search box. Rigid objects are never parameters (frozen by construction).
+the search box. One Levenberg-Marquardt iteration: the residuals' Jacobian by forward differences (one forward
+simulation per parameter, side by side), then damped Gauss-Newton steps until one lowers the loss. Rigid
+objects are never parameters (frozen by construction).
 
 Search box: E in [E_min, min(E_max, margin * E_cfl(nu))] where E_cfl(nu) is the stiffest material the
 identification discretisation simulates within ``max_substeps`` per frame (:func:`endogsim.physics.max_stable_E`;
@@ -14,7 +17,8 @@ given explicitly beyond that bound is refused with a message giving it.
 Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
 not improved by a relative ``tol`` for ``patience`` iterations, or when for ``stationary_patience``
 iterations in a row its gradient could not change it by ``tol`` even over a whole unit step (a stationary,
-flat loss: :func:`stationary`); a checkpoint is written atomically after
+flat loss: :func:`stationary`), or (Levenberg-Marquardt) when its Gauss-Newton model predicts less than ``tol``
+from any step in the search box, or no damped step lowers the loss; a checkpoint is written atomically after
 every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
 """
 
@@ -29,26 +33,37 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from endogsim.determinism import deterministic
 from endogsim.errors import DataError, EndoGSimError, IdentificationError, MaterialError, SimulationError
 from endogsim.gaussians.camera import Camera
 from endogsim.identify.config import IdentifyConfig
+from endogsim.identify.levenberg_marquardt import FD_STEPS, Evaluation, LevenbergMarquardt
 from endogsim.identify.loss import (
     LossValue,
     Observations,
     identification_loss,
+    loss_residuals,
     make_observations,
     observed_flow,
 )
 from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
 from endogsim.io.atomic import save_torch_atomic
-from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord
+from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord, nu_to_raw
 from endogsim.physics import SimResult, max_stable_E
 from endogsim.registry import Registry
 from endogsim.scene.folder import SimScene, coarsened
-from endogsim.scene.forward import Simulations, in_view, render_sequence, same_materials, simulate_materials
+from endogsim.scene.forward import (
+    Rendered,
+    Simulations,
+    in_view,
+    render_sequence,
+    same_materials,
+    simulate_materials,
+)
+from endogsim.warp_runtime import run_independent
 
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
@@ -284,15 +299,76 @@ def prepare_observations(problem: SimScene, config: IdentifyConfig, run_dir: Pat
     return obs, cam
 
 
+def simulate_and_render(problem: SimScene, fld: MaterialField, params: MaterialParams | None, camera,
+                        config: IdentifyConfig) -> tuple[Rendered, SimResult]:
+    """Simulate the field (with ``params`` for the deformable objects) and render the compared frames."""
+    sim = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
+    frames = range(0, problem.num_frames, config.stride(problem.num_frames))
+    return render_sequence(problem, sim.positions, sim.F, camera, frames=frames), sim
+
+
 def evaluate_loss(problem: SimScene, fld: MaterialField, params: MaterialParams | None, obs: Observations,
                   camera, config: IdentifyConfig, grad: bool) -> tuple[LossValue, SimResult]:
     """Simulate, render and compute the loss for the field (with ``params`` for the deformable objects); also
     the simulation (its positions and F carry the gradients when ``grad``)."""
     with torch.set_grad_enabled(grad):
-        sim = simulate_materials(problem, fld.simulator_materials(params), config.grad_mode)
-        frames = range(0, problem.num_frames, config.stride(problem.num_frames))
-        rendered = render_sequence(problem, sim.positions, sim.F, camera, frames=frames)
+        rendered, sim = simulate_and_render(problem, fld, params, camera, config)
         return identification_loss(rendered, obs, config.term_weights()), sim
+
+
+def evaluate_residuals(problem: SimScene, fld: MaterialField, params: MaterialParams, obs: Observations, camera,
+                       config: IdentifyConfig) -> Evaluation:
+    """:func:`evaluate_loss` without gradients, with the loss's residuals (for Levenberg-Marquardt)."""
+    with torch.no_grad():
+        rendered, sim = simulate_and_render(problem, fld, params, camera, config)
+        weights = config.term_weights()
+        return Evaluation(identification_loss(rendered, obs, weights), loss_residuals(rendered, obs, weights), sim)
+
+
+class _ParameterVector:
+    """The Levenberg-Marquardt view of a field's parameters: theta = (log10 E of each slot, then nu of each slot
+    when nu is optimised) as a numpy vector, the search box on it, and the :class:`MaterialParams` at a theta."""
+
+    def __init__(self, problem: SimScene, init_field: MaterialField, config: IdentifyConfig):
+        self.problem, self.init, self.config = problem, init_field, config
+        self.M = len(init_field.to_params(config.global_material, config.nu_bounds).log10_E)
+
+    def theta(self, params: MaterialParams) -> np.ndarray:
+        E = params.log10_E.detach().double().numpy()
+        return np.concatenate([E, params.nu().detach().double().numpy()]) if self.config.optimize_nu else E.copy()
+
+    def params(self, theta: np.ndarray) -> MaterialParams:
+        cfg = self.config
+        p = self.init.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
+        with torch.no_grad():
+            p.log10_E.copy_(torch.as_tensor(theta[: self.M], dtype=torch.float64))
+            if cfg.optimize_nu:
+                p.nu_raw.copy_(torch.tensor([nu_to_raw(float(v), *cfg.nu_bounds) for v in theta[self.M:]],
+                                            dtype=torch.float64))
+        return p
+
+    def box(self, theta: np.ndarray) -> np.ndarray:
+        """theta projected into the search box: nu into its bounds, then log10 E into [E_min, the stability limit at
+        that nu] (:func:`project_into_search_box`)."""
+        cfg, out = self.config, np.array(theta, dtype=float)
+        if cfg.optimize_nu:
+            out[self.M:] = np.clip(out[self.M:], *cfg.nu_bounds)
+        p = self.params(out)
+        hi = stable_log10_E_max(self.problem, p.nu(), _slot_density(self.problem, self.init, p), cfg).numpy()
+        out[: self.M] = np.clip(out[: self.M], math.log10(cfg.E_min), hi)
+        return out
+
+    def steps(self) -> np.ndarray:
+        return np.array([FD_STEPS[0]] * self.M + ([FD_STEPS[1]] * self.M if self.config.optimize_nu else []))
+
+    def raw_gradient(self, grad: np.ndarray, params: MaterialParams) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """A gradient over theta as the leaves' gradients: per decade of E, per raw unit of nu."""
+        g_E = torch.as_tensor(grad[: self.M], dtype=torch.float64)
+        if not self.config.optimize_nu:
+            return g_E, None
+        lo, hi = self.config.nu_bounds
+        s = torch.sigmoid(params.nu_raw.detach())
+        return g_E, torch.as_tensor(grad[self.M:], dtype=torch.float64) * (hi - lo) * s * (1 - s)
 
 
 def stationary(leaves: list[torch.Tensor], loss: float, tol: float) -> bool:
@@ -368,7 +444,20 @@ def identify(
     groups = [{"params": [params.log10_E], "lr_scale": 1.0}]
     if cfg.optimize_nu:
         groups.append({"params": [params.nu_raw], "lr_scale": cfg.lr_nu / cfg.lr})
-    opt = OPTIMIZERS.get(cfg.optimizer)(groups, cfg.lr)
+    vector, workers = _ParameterVector(problem, init_field, cfg), problem.independent_simulations()
+    lm = None
+    if cfg.optimizer == "lm":
+        warmed = []  # Warp builds its kernels on a scene's first simulation: that one runs alone
+
+        def simulate_side_by_side(thetas: list[np.ndarray]) -> list[Evaluation]:
+            tasks = [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, cam, cfg) for t in thetas]
+            first = [] if warmed or not tasks else [tasks.pop(0)()]
+            warmed.append(True)
+            return first + run_independent(tasks, workers)
+
+        opt = lm = LevenbergMarquardt(simulate_side_by_side, vector.box, vector.steps(), cfg.tol, cfg.lm_damping)
+    else:
+        opt = OPTIMIZERS.get(cfg.optimizer)(groups, cfg.lr)
     cfg.stride(problem.num_frames)  # a stride that leaves one frame to compare is refused before any work
     sig = _signature(problem, init_field, cfg, None if run_dir is None else Path(run_dir))
 
@@ -404,13 +493,20 @@ def identify(
             break
         t0 = time.perf_counter()
         lr = cfg.lr * cfg.lr_final_fraction ** (k / max(cfg.iters - 1, 1))
-        for gr in opt.param_groups:
-            gr["lr"] = lr * gr["lr_scale"]
-        opt.zero_grad(set_to_none=True)
-        value, sim = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+        if lm is None:
+            for gr in opt.param_groups:
+                gr["lr"] = lr * gr["lr_scale"]
+            opt.zero_grad(set_to_none=True)
+            value, sim = evaluate_loss(problem, init_field, params, obs, cam, cfg, grad=True)
+            value.total.backward()
+        else:  # the point the last step reached (its evaluation is kept), or where the run starts or resumes
+            here, grad = lm.linearise(lm.theta if lm.theta is not None else vector.theta(params))
+            value, sim = here.value, here.sim
+            params = vector.params(lm.theta)
+            params.log10_E.grad, params.nu_raw.grad = vector.raw_gradient(grad, params)
+            leaves = [params.log10_E] + ([params.nu_raw] if cfg.optimize_nu else [])
         if k == 0:
             simulations.keep("initial", init_field.simulator_materials(params), sim)
-        value.total.backward()
         parts = value.parts
         for leaf, what in zip(leaves, ("log10 E", "raw nu")):
             if leaf.grad is None:
@@ -421,12 +517,17 @@ def identify(
                                           f"object(s) {bad} is NaN/inf although every loss term was finite: "
                                           "the backward pass through the renderer produced it")
         flat = stationary(leaves, parts["total"], cfg.tol)
-        gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
+        if lm is None:
+            gnorm = float(torch.nn.utils.clip_grad_norm_(leaves, cfg.max_grad_norm))
+        else:  # Levenberg-Marquardt steps by its model, not by the gradient: nothing to clip
+            gnorm = float(torch.cat([leaf.grad.flatten() for leaf in leaves]).norm())
         E, nu = _values(params)
         rec = {"iteration": k, "loss": parts["total"], "terms": {n: v for n, v in parts.items() if n != "total"}, "lr": lr,
                "grad_norm": gnorm, "grad_log10_E": params.log10_E.grad.tolist(),
                "grad_nu_raw": (params.nu_raw.grad.tolist() if params.nu_raw.grad is not None else None),
                "E": E, "nu": nu}
+        if lm is not None:
+            rec["damping"], rec["predicted_gain"] = lm.lam, lm.predicted_gain
         if best is None or parts["total"] < best["loss"]:
             improved = best is None or parts["total"] < best["loss"] * (1 - cfg.tol)
             best = {"loss": parts["total"], "iteration": k, "log10_E": params.log10_E.detach().clone(),
@@ -436,12 +537,19 @@ def identify(
         else:
             stale += 1
         flat_run = flat_run + 1 if flat else 0
-        opt.step()
-        project_into_search_box(params, problem, init_field, cfg)
+        flat_stop = cfg.stationary_patience > 0 and flat_run >= cfg.stationary_patience
+        if lm is None:
+            opt.step()
+            project_into_search_box(params, problem, init_field, cfg)
+        elif not lm.stopped and not flat_stop:
+            params = vector.params(lm.step())  # the damped steps' simulations: this iteration's time
+            rec["tries"] = lm.tries
         seconds += time.perf_counter() - t0
         rec["seconds"] = seconds
         rec["stationary"] = flat
-        rec["converged"] = stale >= cfg.patience or (cfg.stationary_patience > 0 and flat_run >= cfg.stationary_patience)
+        rec["converged"] = stale >= cfg.patience or flat_stop or bool(lm is not None and lm.stopped)
+        if lm is not None and lm.stopped:
+            rec["lm_stopped"] = lm.stopped
         history.append(rec)
         done_here += 1
         if ckpt_path is not None:
@@ -459,6 +567,12 @@ def identify(
         run = "" if cfg.stationary_patience == 1 else f" for {cfg.stationary_patience} iterations in a row"
         notes.append(f"stopped at iteration {history[-1]['iteration']}:{run} no parameter's gradient could change "
                      f"the loss by {cfg.tol:g} of itself over a unit step (a flat, stationary loss)")
+    elif stopped == "converged" and history[-1].get("lm_stopped") == "converged":
+        notes.append(f"stopped at iteration {history[-1]['iteration']}: the loss changes by less than {cfg.tol:g} of "
+                     "itself (the last step gained less, as its Gauss-Newton model predicted; or the model predicts "
+                     "less from any step in the search box)")
+    elif stopped == "converged" and history[-1].get("lm_stopped") == "no descent":
+        notes.append(f"stopped at iteration {history[-1]['iteration']}: no damped Gauss-Newton step lowered the loss")
 
     intervals: list[ParameterInterval] = []
     evaluated: dict = {}  # {"field", "evaluation"}: the field the slices imply, evaluated during the intervals
