@@ -117,6 +117,8 @@ def test_clear_errors(tmp_path, monkeypatch):
         run_suite(["tiny"], tmp_path, tmp_path, runs=["manual_on"])
     with pytest.raises(EndoGSimError, match="runs prior_on, prior_of: choose among"):
         run_suite(["tiny"], tmp_path, tmp_path, runs=["prior_on", "prior_of"])
+    with pytest.raises(EndoGSimError, match="optimiser 'newton' is not one of rprop, adam, lm"):
+        run_suite(["tiny"], tmp_path, tmp_path, optimizer="newton")
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     with pytest.raises(EndoGSimError, match=r"pip install 'endogsim\[ray\]'"):
         run_suite(["tiny"], tmp_path / "s", tmp_path / "w", ray=True, **SMALL)

@@ -73,7 +73,7 @@ def _default_scenes() -> list[str]:
 def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = DEFAULT_ITERS,
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
-              time_budget: float | None = None) -> dict:
+              time_budget: float | None = None, optimizer: str = "rprop") -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
 
     Args:
@@ -89,6 +89,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         runs: the run keys to do (of :data:`RUN_KEYS`; default all, ``global_on`` only where the ablation
             runs).
         time_budget: identification's safety stop in seconds (None: none; the module docstring says why).
+        optimizer: identification's optimiser (``IdentifyConfig.optimizer``; the default's figures are the
+            suite's).
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
@@ -120,7 +122,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     done = {}
     for key, init, on, glob in plan:
         cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
-                             intervals=key == FULL_METHOD, time_budget=time_budget)
+                             intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer)
         t_run = time.perf_counter()
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
@@ -248,7 +250,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               work_dir: str | os.PathLike = "bench_suite_runs", iters: int | None = None, quick: bool = False,
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
-              time_budget: float | None = None, log=print) -> dict:
+              time_budget: float | None = None, optimizer: str = "rprop", log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -261,6 +263,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             work, 1 can be several times faster than torch's default pool.
         runs: run keys to do (of :data:`RUN_KEYS`, with ``prior_on``: Table 2 is its; default all).
         time_budget: each identification's safety stop in seconds (default None: none).
+        optimizer: identification's optimiser (default "rprop", the suite's figures; "lm": docs/IDENTIFICATION.md
+            section 4).
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
@@ -278,10 +282,15 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         if wrong or FULL_METHOD not in runs:
             raise EndoGSimError(f"runs {', '.join(runs)}: choose among {', '.join(RUN_KEYS)}, with {FULL_METHOD} "
                                 "(the full method, whose run every table starts from)")
+    from endogsim.identify.config import OPTIMIZER_KINDS
+
+    if optimizer not in OPTIMIZER_KINDS:
+        raise EndoGSimError(f"optimiser {optimizer!r} is not one of {', '.join(OPTIMIZER_KINDS)}")
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
-               fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget)
+               fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
+               optimizer=optimizer)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -299,7 +308,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
-                         "time_budget": time_budget},
+                         "time_budget": time_budget, "optimizer": optimizer},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 

@@ -144,8 +144,9 @@ class SharedScaleRprop(torch.optim.Optimizer):
                 p.add_(g / (g.abs().max() + group["eps"]), alpha=-float(st["size"]))
 
 
-#: Identification's optimisers (``IdentifyConfig.optimizer``): groups [{"params": [...], "lr_scale"}], lr ->
-#: a torch optimiser whose groups' "lr" the loop sets every iteration (its schedule).
+#: Identification's gradient optimisers (``IdentifyConfig.optimizer``): groups [{"params": [...], "lr_scale"}], lr ->
+#: a torch optimiser whose groups' "lr" the loop sets every iteration (its schedule). "lm" is not one of them: it
+#: needs the residuals and several simulations an iteration (:class:`LevenbergMarquardt`).
 OPTIMIZERS: Registry[Callable[..., torch.optim.Optimizer]] = Registry("optimiser", MaterialError)
 OPTIMIZERS.register("adam", lambda groups, lr: SharedScaleAdam(groups, lr=lr, betas=(0.9, 0.99)))
 OPTIMIZERS.register("rprop", lambda groups, lr: SharedScaleRprop(groups, lr=lr))
