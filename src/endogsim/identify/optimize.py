@@ -335,10 +335,13 @@ class _ParameterVector:
         self.M = len(init_field.to_params(config.global_material, config.nu_bounds).log10_E)
 
     def theta(self, params: MaterialParams) -> np.ndarray:
+        """[p] theta of ``params``: log10 E (decades of Pa) of each slot, then nu of each slot."""
         E = params.log10_E.detach().double().numpy()
         return np.concatenate([E, params.nu().detach().double().numpy()]) if self.config.optimize_nu else E.copy()
 
     def params(self, theta: np.ndarray) -> MaterialParams:
+        """Fresh :class:`MaterialParams` at ``theta`` [p] (nu through the sigmoid's inverse, clamped just inside
+        its bounds); every simulation of a theta is made from these, so the same theta simulates the same."""
         cfg = self.config
         p = self.init.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
         with torch.no_grad():
@@ -360,6 +363,7 @@ class _ParameterVector:
         return out
 
     def steps(self) -> np.ndarray:
+        """[p] forward-difference steps: :data:`FD_STEPS` decades for each log10 E, then its nu step."""
         return np.array([FD_STEPS[0]] * self.M + ([FD_STEPS[1]] * self.M if self.config.optimize_nu else []))
 
     def raw_gradient(self, grad: np.ndarray, params: MaterialParams) -> tuple[torch.Tensor, torch.Tensor | None]:
