@@ -282,10 +282,9 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         if wrong or FULL_METHOD not in runs:
             raise EndoGSimError(f"runs {', '.join(runs)}: choose among {', '.join(RUN_KEYS)}, with {FULL_METHOD} "
                                 "(the full method, whose run every table starts from)")
-    from endogsim.identify.config import OPTIMIZER_KINDS
+    from endogsim.identify.config import IdentifyConfig
 
-    if optimizer not in OPTIMIZER_KINDS:
-        raise EndoGSimError(f"optimiser {optimizer!r} is not one of {', '.join(OPTIMIZER_KINDS)}")
+    IdentifyConfig(optimizer=optimizer)  # an unknown optimiser is refused (MaterialError) before any scene is made
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,

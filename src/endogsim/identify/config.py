@@ -12,7 +12,8 @@ from endogsim.priors.flow import FlowConfig
 
 LossKind = Literal["joint_track", "joint", "render", "flow", "track"]
 LOSSES: tuple[str, ...] = get_args(LossKind)
-#: Identification's optimisers (their implementations: ``endogsim.identify.optimize.OPTIMIZERS``).
+#: Identification's optimisers (the gradient ones: ``endogsim.identify.optimize.OPTIMIZERS``; "lm":
+#: ``endogsim.identify.levenberg_marquardt``).
 OptimizerKind = Literal["rprop", "adam", "lm"]
 OPTIMIZER_KINDS: tuple[str, ...] = get_args(OptimizerKind)
 #: The automatic frame stride compares at least this many frames (the intervals' t-test then has 9 degrees of

@@ -48,10 +48,10 @@ def damped_step(J: torch.Tensor, r: torch.Tensor, lam: float) -> np.ndarray:
     """The Levenberg-Marquardt step d [p] for residuals r [n] with Jacobian J [n, p] and damping ``lam``
     (Marquardt's scaling: lam times the diagonal of J^T J; lam = 0 is the Gauss-Newton step, solved by least
     squares so that a column of zeros, a parameter that moves nothing, gets no step)."""
-    A = (J.T @ J).double()
-    g = (J.T @ r).double()
     if lam == 0.0:
         return torch.linalg.lstsq(J.double(), -r.double().unsqueeze(1), driver="gelsd").solution[:, 0].numpy()
+    A = (J.T @ J).double()
+    g = (J.T @ r).double()
     D = torch.diag(torch.diagonal(A).clamp_min(1e-30 * float(torch.diagonal(A).max().clamp_min(1e-300))))
     return torch.linalg.solve(A + lam * D, -g).numpy()
 

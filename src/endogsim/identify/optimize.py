@@ -17,9 +17,9 @@ given explicitly beyond that bound is refused with a message giving it.
 Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
 not improved by a relative ``tol`` for ``patience`` iterations, or when for ``stationary_patience``
 iterations in a row its gradient could not change it by ``tol`` even over a whole unit step (a stationary,
-flat loss: :func:`stationary`), or (Levenberg-Marquardt) when its Gauss-Newton model predicts less than ``tol``
-from any step in the search box, or no damped step lowers the loss; a checkpoint is written atomically after
-every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
+flat loss: :func:`stationary`), or (Levenberg-Marquardt) when the loss changes by less than ``tol`` as its
+Gauss-Newton model predicts, or no damped step lowers it (:mod:`endogsim.identify.levenberg_marquardt`); a
+checkpoint is written atomically after every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
 """
 
 from __future__ import annotations
