@@ -19,7 +19,8 @@ not improved by a relative ``tol`` for ``patience`` iterations, or when for ``st
 iterations in a row its gradient could not change it by ``tol`` even over a whole unit step (a stationary,
 flat loss: :func:`stationary`), or (Levenberg-Marquardt) when the loss changes by less than ``tol`` as its
 Gauss-Newton model predicts, or no damped step lowers it (:mod:`endogsim.identify.levenberg_marquardt`); a
-checkpoint is written atomically after every iteration and a run resumes from it (same settings) after an interruption, reaching the same result.
+checkpoint is written atomically after every iteration and a run resumes from it (same settings) after an
+interruption, reaching the same result.
 """
 
 from __future__ import annotations
