@@ -376,3 +376,25 @@ def test_cli_run_and_validate_refuse_a_negative_support_friction_before_any_work
         assert r.exit_code == 2, r.output
         assert "support_friction" in r.output and "Traceback" not in r.output
         assert not (tmp_path / cmd / "recon").exists()
+
+
+def test_cli_run_and_validate_take_the_optimiser_and_refuse_an_unknown_one_before_any_work(tmp_path, monkeypatch):
+    root = make_endonerf(tmp_path / "s")
+    for cmd in ("run", "validate"):
+        r = CliRunner().invoke(_app(), [cmd, str(root), "--out", str(tmp_path / cmd), "--optimizer", "newton"])
+        assert r.exit_code == 2, r.output
+        assert "newton" in r.output and "rprop" in r.output and "Traceback" not in r.output
+        assert not (tmp_path / cmd / "recon").exists()
+    # a known one reaches the calibration's settings (the pipeline itself is not run here)
+    import endogsim.pipeline.run as pipeline_run
+
+    seen = {}
+
+    def fake_pipeline(data, out, cfg, **kw):
+        seen["optimizer"] = cfg.identify.optimizer
+        return {"stages": {}}
+
+    monkeypatch.setattr(pipeline_run, "run_pipeline", fake_pipeline)
+    r = CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "lm"), "--optimizer", "lm"])
+    assert r.exit_code == 0, r.output
+    assert seen == {"optimizer": "lm"}

@@ -299,6 +299,46 @@ def test_a_flat_loss_is_not_identifiable_and_keeps_the_prior():
     assert ident[1].source == f"E: {NOT_IDENTIFIABLE}; nu: {ONE_SIDED}"
 
 
+def test_nu_slice_ends_where_the_optimum_leaves_the_search_box():
+    """The box for E shrinks as nu rises (the CFL rule), so a stiff optimum is reachable only up to some nu:
+    nu's slice walks to there, never beyond (a trial there would be outside what identification searches)."""
+    import torch
+
+    from endogsim.identify.uncertainty import reachable_nu_max
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E.fill_(5.0)
+        params.nu_raw.fill_(-2.0)  # nu about 0.06
+
+    def box(trial):  # E_max(nu) = 10^6 (1 - 2 nu^2 / (1 - nu)) / 4: the CFL rule's shape, 10^5 at nu 0.418
+        nu = float(trial.nu()[0])
+        return [1.7], [math.log10(1e6 * (1 - 2 * nu ** 2 / (1 - nu)) / 4)]
+
+    nu_max = reachable_nu_max(params, 0, box)
+    edge = 1 - 2 * nu_max ** 2 / (1 - nu_max)
+    assert edge == pytest.approx(0.4, abs=1e-9)  # E_max(nu_max) = 10^5 = the optimum's E
+    assert nu_max == pytest.approx((math.sqrt(0.36 + 4.8) - 0.6) / 4, abs=1e-9)  # 2 nu^2 + 0.6 nu - 0.6 = 0
+    tried = []
+
+    def per_frame(trial):
+        tried.append(float(trial.nu()[0]))
+        return {0: 0.12, 2: 0.07, 4: 0.09}
+
+    ivs = parameter_intervals(params, {1: "liver"}, per_frame, box, True)
+    nu_iv = ivs[1]
+    assert nu_iv.search_box == pytest.approx([0.0, nu_max])
+    assert max(tried) == pytest.approx(nu_max, abs=1e-6)  # walked to the edge, not to 0.49
+    assert nu_iv.interval == pytest.approx([0.0, nu_max])
+    # an optimum whose E is reachable at every nu keeps the whole box; one on the edge has no side above it
+    assert reachable_nu_max(params, 0, lambda trial: ([1.7], [6.0])) == 0.49
+    on_edge = nu_iv.best
+    with torch.no_grad():
+        params.log10_E.fill_(box(params)[1][0])
+    assert reachable_nu_max(params, 0, box) == pytest.approx(on_edge)
+
+
 def test_a_tool_that_never_touches_the_tissue_determines_nothing(tmp_path):
     """``tiny`` (3 frames) with gravity off and the probe held 10 mm short of the tissue throughout: the tissue
     never moves, so no material is identifiable, identification stops once the gradient stays flat and keeps

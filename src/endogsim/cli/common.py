@@ -30,6 +30,10 @@ console = Console(stderr=False, width=_WIDTH)
 err_console = Console(stderr=True)
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: ``--optimizer`` of ``identify``, ``run`` and ``validate`` (:attr:`endogsim.identify.IdentifyConfig.optimizer`).
+OPTIMIZER_HELP = ("rprop (steps grow while the gradient keeps its direction) | adam | lm (Levenberg-Marquardt, forward "
+                  "simulations side by side, no adjoint).")
+
 
 def user_errors(func: F) -> F:
     """Turn an :class:`EndoGSimError` into a one-line red message and exit code 2 (no traceback).

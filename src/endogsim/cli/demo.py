@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import output_folder, user_errors
+from endogsim.cli.common import OPTIMIZER_HELP, output_folder, user_errors
 
 
 def _stage_printer():
@@ -35,6 +35,14 @@ _BORDER_HELP = ("How the band along the tissue's outline is held: tracked (it fo
 #: ``--support-friction`` of ``run`` and ``validate`` (``RealScenario.support_friction``).
 _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed on it, the tissue slides once its "
                   "tangential speed beats this times the normal speed it loses (0: frictionless).")
+
+
+def _identify_config(iters: int | None, optimizer: str | None):
+    """The identification (calibration) settings of ``run`` and ``validate``: the library's defaults but for the
+    options given (an unknown optimiser is refused here, before any work)."""
+    from endogsim.identify.config import IdentifyConfig
+
+    return IdentifyConfig(**{k: v for k, v in (("iters", iters), ("optimizer", optimizer)) if v is not None})
 
 
 def register(app: typer.Typer) -> None:
@@ -119,6 +127,8 @@ def register(app: typer.Typer) -> None:
                                         "'none' to skip)."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
+        optimizer: Optional[str] = typer.Option(None, "--optimizer", help="Identification's optimiser: "
+                                                + OPTIMIZER_HELP),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
@@ -128,13 +138,12 @@ def register(app: typer.Typer) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
         from endogsim.cli.common import console
-        from endogsim.identify.config import IdentifyConfig
         from endogsim.pipeline.run import PipelineConfig, run_pipeline
         from endogsim.pipeline.scene_from_recon import RealScenario
         from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
+        ident = _identify_config(identify_iters, optimizer)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction,
                              scenario=RealScenario(grasping=grasping, border_motion=border_motion,
@@ -156,6 +165,7 @@ def register(app: typer.Typer) -> None:
                                                    "mllm | replay | a material JSON file."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Calibration iterations."),
+        optimizer: Optional[str] = typer.Option(None, "--optimizer", help="Calibration's optimiser: " + OPTIMIZER_HELP),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         recon_run: Optional[Path] = typer.Option(None, "--recon", help="Use this `endogsim reconstruct` run folder of "
                                                  "DATA instead of reconstructing into OUT/recon."),
@@ -169,7 +179,6 @@ def register(app: typer.Typer) -> None:
         OUT/report.html."""
         from endogsim.cli.common import console, print_table
         from endogsim.errors import DataError
-        from endogsim.identify.config import IdentifyConfig
         from endogsim.io.atomic import write_json_atomic
         from endogsim.pipeline.run import PipelineConfig
         from endogsim.pipeline.scene_from_recon import RealScenario
@@ -183,7 +192,7 @@ def register(app: typer.Typer) -> None:
         if json_out is not None and json_out.is_dir():
             raise DataError(f"{json_out}: --json names a folder; give the JSON file to write")
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = IdentifyConfig() if identify_iters is None else IdentifyConfig(iters=identify_iters)
+        ident = _identify_config(identify_iters, optimizer)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
                              pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
                                                      scenario=RealScenario(grasping=grasping,

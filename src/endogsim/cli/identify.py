@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import output_folder, user_errors
+from endogsim.cli.common import OPTIMIZER_HELP, output_folder, user_errors
 from endogsim.identify.config import IdentifyConfig
 from endogsim.priors.flow import FlowConfig
 
@@ -31,9 +31,7 @@ def register(app: typer.Typer) -> None:
         iters: int = typer.Option(_DEFAULT.iters, "--iters", help="Most optimisation iterations (0: evaluate the init only)."),
         global_material: bool = typer.Option(False, "--global-material",
                                               help="One (E, nu) for every deformable object (ablation)."),
-        optimizer: str = typer.Option(_DEFAULT.optimizer, "--optimizer",
-                                      help="rprop (steps grow while the gradient keeps its direction) | adam | lm "
-                                           "(Levenberg-Marquardt, forward simulations side by side, no adjoint)."),
+        optimizer: str = typer.Option(_DEFAULT.optimizer, "--optimizer", help=OPTIMIZER_HELP),
         lr: float = typer.Option(_DEFAULT.lr, "--lr", help="First step on log10 E (decades; nu's is 3x in raw units)."),
         render_scale: float = typer.Option(_DEFAULT.render_scale, "--render-scale",
                                            help="Render/compare at this fraction of the image size."),

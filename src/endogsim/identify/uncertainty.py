@@ -15,7 +15,8 @@ crosses z_c, and reaches at least to every trial value whose loss is below theta
 each side of theta* some trial value raises the loss significantly above its frame-to-frame noise, z > z_s
 (:func:`significant_z`): a one-sided test at 5% per side of "the loss does not depend on theta", under which z
 follows Student's t with n - 1 degrees of freedom. Slices go outward from theta* (log10 E by 0.1, 0.3, 1
-decade, then to the search box's end; nu by 0.02, 0.06, then to the box's end) and stop at the first
+decade, then to the search box's end; nu by 0.02, 0.06, then to the box's end: the largest nu at which the
+optimum's E is still in the box, :func:`reachable_nu_max`) and stop at the first
 significant value: a parameter is declared not identifiable only after the loss stayed within its noise over
 the whole search box on a side.
 One whose first gradient was zero is not identifiable, whatever its slice.
@@ -83,7 +84,7 @@ __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "Parameter
            "DiscretisationError", "counted_z", "paired_z", "critical_z", "significant_z", "interval_from_slice",
            "walk_slice", "walk_side", "slice_from_sides",
            "identifiability", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
-           "parameter_intervals"]
+           "reachable_nu_max", "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
 LEVEL = 0.90
@@ -419,6 +420,30 @@ def discretisation_from_sides(best: float, ratio: float, down: CoarseSide, up: C
                                lower_bound=bool(lower), profile=[[v, points[v]] for v in points])
 
 
+def reachable_nu_max(params: MaterialParams, slot: int,
+                     box_log10_E: Callable[[MaterialParams], tuple[list[float], list[float]]]) -> float:
+    """The largest nu (within ``params.nu_bounds``) at which slot ``slot``'s log10 E, the optimum's, is still
+    inside the search box: the upper end of the box for E falls as nu rises (the CFL rule: a stiffer P wave
+    needs more substeps), so a stiff optimum is not reachable at every nu. Identification cannot go beyond it,
+    and neither does nu's slice: its trials there would be no part of the search box, and cost more substeps
+    than ``max_substeps`` (EndoNeRF pulling's optimum E 118 kPa at nu 0.49: 554 substeps per frame, 4x the
+    optimum's 134). The optimum's own nu when it is already on that edge (or beyond it)."""
+    log10_E = float(params.log10_E.detach()[slot])
+    lo, hi = float(params.nu().detach()[slot]), params.nu_bounds[1]
+
+    def inside(nu: float) -> bool:
+        return box_log10_E(_with_value(params, slot, "nu", nu))[1][slot] >= log10_E - 1e-9
+
+    if inside(hi):
+        return hi
+    if lo >= hi or not inside(lo):
+        return lo
+    for _ in range(40):  # the box's upper end falls monotonically with nu: bisect to ~1e-12 of the range
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if inside(mid) else (lo, mid)
+    return lo
+
+
 def spans(interval: list[float], box: tuple[float, float]) -> bool:
     """Whether ``interval`` is the whole of ``box`` (to 1e-9)."""
     return interval[0] <= box[0] + 1e-9 and interval[1] >= box[1] - 1e-9
@@ -499,8 +524,9 @@ def parameter_intervals(
         lo_box, hi_box = (b[slot] for b in box_log10_E(params))
         specs = [("E", E_STEPS, (lo_box, hi_box), float(params.log10_E.detach()[slot]))]
         if optimise_nu:
-            nlo, nhi = params.nu_bounds
-            specs.append(("nu", NU_STEPS, (nlo, nhi), float(params.nu().detach()[slot])))
+            nu_best = float(params.nu().detach()[slot])
+            nu_box = (params.nu_bounds[0], reachable_nu_max(params, slot, box_log10_E))
+            specs.append(("nu", NU_STEPS, nu_box, nu_best))
         for what, steps, box, best in specs:
             def compare(v: float, slot=slot, what=what, name=name) -> tuple[float, float, float]:
                 check_cancelled(cancel)
