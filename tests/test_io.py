@@ -395,6 +395,20 @@ def test_cli_run_and_validate_take_the_optimiser_and_refuse_an_unknown_one_befor
         return {"stages": {}}
 
     monkeypatch.setattr(pipeline_run, "run_pipeline", fake_pipeline)
-    r = CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "lm"), "--optimizer", "lm"])
-    assert r.exit_code == 0, r.output
-    assert seen == {"optimizer": "lm"}
+    for given, used in ((["--optimizer", "rprop"], "rprop"), ([], pipeline_run.PIPELINE_OPTIMIZER)):
+        r = CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "lm"), *given])
+        assert r.exit_code == 0, r.output
+        assert seen == {"optimizer": used}
+
+
+def test_the_pipeline_calibrates_with_levenberg_marquardt_unless_told_otherwise():
+    from endogsim.identify.config import IdentifyConfig
+    from endogsim.pipeline.run import PipelineConfig
+    from endogsim.pipeline.validate import ValidateConfig
+
+    assert IdentifyConfig().optimizer == "rprop"  # the library's (and identify's, the suite's, the demo's)
+    assert PipelineConfig().identify.optimizer == "lm"
+    assert ValidateConfig().pipeline.identify.optimizer == "lm"
+    assert PipelineConfig(identify={"iters": 1}).identify.optimizer == "lm"  # a dict fills in the pipeline's
+    assert PipelineConfig(identify={"optimizer": "rprop"}).identify.optimizer == "rprop"
+    assert PipelineConfig(identify=IdentifyConfig()).identify.optimizer == "rprop"  # a config is taken as it is

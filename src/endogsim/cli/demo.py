@@ -37,12 +37,18 @@ _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed
                   "tangential speed beats this times the normal speed it loses (0: frictionless).")
 
 
-def _identify_config(iters: int | None, optimizer: str | None):
-    """The identification (calibration) settings of ``run`` and ``validate``: the library's defaults but for the
-    options given (an unknown optimiser is refused here, before any work)."""
-    from endogsim.identify.config import IdentifyConfig
+#: ``--optimizer`` of ``run`` and ``validate`` (:data:`endogsim.pipeline.run.PIPELINE_OPTIMIZER`).
+_PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (on both real clips it stops by its tolerance "
+                            "in 4-5 iterations, where rprop, identify's default, runs up to the time budget): "
+                            + OPTIMIZER_HELP)
 
-    return IdentifyConfig(**{k: v for k, v in (("iters", iters), ("optimizer", optimizer)) if v is not None})
+
+def _identify_config(iters: int | None, optimizer: str | None):
+    """The identification (calibration) settings of ``run`` and ``validate``: the pipeline's defaults but for the
+    options given (an unknown optimiser is refused here, before any work)."""
+    from endogsim.pipeline.run import pipeline_identify
+
+    return pipeline_identify(**{k: v for k, v in (("iters", iters), ("optimizer", optimizer)) if v is not None})
 
 
 def register(app: typer.Typer) -> None:
@@ -127,8 +133,7 @@ def register(app: typer.Typer) -> None:
                                         "'none' to skip)."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
-        optimizer: Optional[str] = typer.Option(None, "--optimizer", help="Identification's optimiser: "
-                                                + OPTIMIZER_HELP),
+        optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
@@ -165,7 +170,7 @@ def register(app: typer.Typer) -> None:
                                                    "mllm | replay | a material JSON file."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Calibration iterations."),
-        optimizer: Optional[str] = typer.Option(None, "--optimizer", help="Calibration's optimiser: " + OPTIMIZER_HELP),
+        optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         recon_run: Optional[Path] = typer.Option(None, "--recon", help="Use this `endogsim reconstruct` run folder of "
                                                  "DATA instead of reconstructing into OUT/recon."),
