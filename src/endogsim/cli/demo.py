@@ -39,8 +39,8 @@ _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed
 
 #: ``--optimizer`` of ``run`` and ``validate`` (:data:`endogsim.pipeline.run.PIPELINE_OPTIMIZER`).
 _PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (on both real clips it stops by its tolerance "
-                            "in 4-5 iterations, where rprop, identify's default, runs up to the time budget): "
-                            + OPTIMIZER_HELP)
+                            "in 4-5 iterations, where rprop, identify's default, takes 8-13 and can run into the "
+                            "time budget): " + OPTIMIZER_HELP)
 
 
 def _identify_config(iters: int | None, optimizer: str | None):
