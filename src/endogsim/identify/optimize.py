@@ -230,11 +230,17 @@ def _slot_density(problem: SimScene, fld: MaterialField, params: MaterialParams)
     return torch.tensor(rho, dtype=torch.float64)
 
 
+def log10_E_box(problem: SimScene, fld: MaterialField, params: MaterialParams,
+                config: IdentifyConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The search box for log10 E per parameter slot at ``params``' nu: ([M] log10 E_min, [M] log10 E_max(nu))."""
+    hi = stable_log10_E_max(problem, params.nu(), _slot_density(problem, fld, params), config)
+    return torch.full_like(hi, math.log10(config.E_min)), hi
+
+
 def project_into_search_box(params: MaterialParams, problem: SimScene, fld: MaterialField, config: IdentifyConfig) -> None:
     """Clamp log10 E into [log10 E_min, log10 E_max(nu)] in place (keeps the simulation stable)."""
     with torch.no_grad():
-        hi = stable_log10_E_max(problem, params.nu(), _slot_density(problem, fld, params), config)
-        lo = torch.full_like(hi, math.log10(config.E_min))
+        lo, hi = log10_E_box(problem, fld, params, config)
         params.log10_E.copy_(torch.maximum(torch.minimum(params.log10_E, hi), lo))
 
 
@@ -358,9 +364,8 @@ class _ParameterVector:
         cfg, out = self.config, np.array(theta, dtype=float)
         if cfg.optimize_nu:
             out[self.M:] = np.clip(out[self.M:], *cfg.nu_bounds)
-        p = self.params(out)
-        hi = stable_log10_E_max(self.problem, p.nu(), _slot_density(self.problem, self.init, p), cfg).numpy()
-        out[: self.M] = np.clip(out[: self.M], math.log10(cfg.E_min), hi)
+        lo, hi = log10_E_box(self.problem, self.init, self.params(out), cfg)
+        out[: self.M] = np.clip(out[: self.M], lo.numpy(), hi.numpy())
         return out
 
     def steps(self) -> np.ndarray:
@@ -620,8 +625,7 @@ def identify(
                 reference = fine(final)
             intervals = parameter_intervals(
                 final, {o: problem.labels[o].name for o in final.object_ids}, remember(fine, ("fine", cfg.device)),
-                lambda trial: ([math.log10(cfg.E_min)] * trial.log10_E.shape[0],
-                               stable_log10_E_max(problem, trial.nu(), _slot_density(problem, init_field, trial), cfg).tolist()),
+                lambda trial: tuple(b.tolist() for b in log10_E_box(problem, init_field, trial, cfg)),
                 cfg.optimize_nu, {"log10_E": history[0]["grad_log10_E"], "nu_raw": history[0]["grad_nu_raw"]},
                 coarse_evaluate=coarse_evaluate,
                 coarse_ratio=None if coarse is None else problem.mpm.grid_res / coarse.mpm.grid_res,
