@@ -474,7 +474,7 @@ def test_real_clips_give_one_collider_per_instrument(tmp_path, clip, instruments
 
 
 def test_a_grasping_tool_holds_the_free_tissue_its_jaws_close_on():
-    from endogsim.physics import Particles
+    from endogsim.physics import GRASP_MARGIN, Particles
     from endogsim.scene.particles import tool_colliders
     from endogsim.scene.schema import ToolCapsule
 
@@ -487,7 +487,7 @@ def test_a_grasping_tool_holds_the_free_tissue_its_jaws_close_on():
     probe = ToolCapsule(object_id=8, tip=tip, end=[0.0195, 0.01, 0.03], radius=0.002, transforms=eye)
     held, pushed = tool_colliders([grasper, probe], parts, ~pinned, dx=0.002)
     d = np.linalg.norm(x - np.asarray(tip), axis=1)
-    expect = np.flatnonzero((d <= 0.003) & ~pinned)
+    expect = np.flatnonzero((d <= 0.002 + GRASP_MARGIN) & ~pinned)
     assert len(expect) > 5 and np.array_equal(held.holds.numpy(), expect)
     assert pushed.holds is None  # a probe only pushes
     with pytest.raises(ValueError, match="contact 'glue'"):
