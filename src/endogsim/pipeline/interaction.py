@@ -9,8 +9,8 @@ sections that may be combined:
   ``force``  a body acceleration (m/s^2, world) on the particles within ``radius`` metres of a surface
              point, over the time window [t_start, t_end) seconds.
   ``grasp``  a sphere (radius metres) on a surface point that follows keyframes and holds the tissue
-             within it (and 1 mm beyond): grasp and pull; with ``with_tool`` the scene's tool tip goes to
-             the grasp point and moves with it.
+             within it (and ``GRASP_MARGIN``, 3 mm, beyond): grasp and pull; with ``with_tool`` the scene's
+             tool tip goes to the grasp point and moves with it.
 
 Surface points are given as ``at = [u, v]`` in [-1, 1]^2 over the (image-plane) bounding box of the
 deformable particles (of ``object`` if named), and lie on the side facing the camera; or as a world
