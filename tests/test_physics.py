@@ -14,6 +14,7 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, quat_to_rotmat
 from endogsim.gaussians.sh import eval_sh
 from endogsim.physics import (
+    GRASP_MARGIN,
     Anchor,
     ExternalForce,
     MPMConfig,
@@ -563,13 +564,13 @@ def test_anchored_slab_motion_converges_in_dt():
 
 
 def _slab_and_capsule(grid: int, tip_z: float, end_z: float, travel_z: float, frames: int, grasp: bool,
-                      margin: float | None = None, E: float = 5e3, gravity_z: float = 0.0):
+                      margin: float = GRASP_MARGIN, E: float = 5e3, gravity_z: float = 0.0):
     """A 6-mm slab (x 30-70 mm, ``E`` Pa) held at both ends and a 3-mm capsule over its middle (axis along z
     from ``tip_z`` to ``end_z``) that moves ``travel_z`` metres along z, grasping the slab (a bite ``margin``
-    metres beyond the tip sphere; default GRASP_MARGIN) or only pushing it; gravity ``gravity_z`` m/s^2 along z.
+    metres beyond the tip sphere) or only pushing it; gravity ``gravity_z`` m/s^2 along z.
 
     Returns the particles, their rest positions [P, 3] (numpy), the held indices (or None) and the result."""
-    from endogsim.physics.particles import GRASP_MARGIN, capsule_collider, grasped_particles
+    from endogsim.physics.particles import capsule_collider, grasped_particles
 
     parts = Particles.box((0.03, 0.04, 0.05), (0.07, 0.06, 0.056), 0.1 / grid / 2)
     x = parts.x.double().numpy()
@@ -577,8 +578,7 @@ def _slab_and_capsule(grid: int, tip_z: float, end_z: float, travel_z: float, fr
     tip, end = np.array([0.05, 0.05, tip_z]), np.array([0.05, 0.05, end_z])
     tf = np.tile(np.eye(4), (frames, 1, 1))
     tf[:, 2, 3] = np.linspace(0, travel_z, frames)
-    bite = GRASP_MARGIN if margin is None else margin
-    holds = grasped_particles(x, tip, 0.003, free=~ends, margin=bite) if grasp else None
+    holds = grasped_particles(x, tip, 0.003, free=~ends, margin=margin) if grasp else None
     scen = Scenario(BOX, gravity=(0.0, 0.0, gravity_z), anchors=[Anchor(particle_mask=torch.as_tensor(ends))],
                     colliders=[capsule_collider(tip, end, 0.003, tf, 0.1 / grid, holds)])
     return parts, x, holds, simulate(parts, _mats(E, 0.4), scen, MPMConfig(grid_res=grid, damping=50.0), frames)
@@ -675,8 +675,6 @@ def test_a_grasped_sheet_lifted_under_its_weight_comes_with_the_bite():
     beyond the tip sphere (8 mm across, 3 cells of grid 50) tears out of the sheet by numerical fracture, by
     how much depending on the grid: its ring rises 2.8 and 4.7 mm of 8 on grids 50 and 100. At GRASP_MARGIN
     (3 mm) the sheet comes with it, alike on both grids (measured 6.7 and 7.1 mm)."""
-    from endogsim.physics.particles import GRASP_MARGIN
-
     torn = [_sheet_lifted_under_its_weight(grid, 0.001) for grid in (50, 100)]
     assert max(torn) < 0.006 and abs(torn[0] - torn[1]) > 0.2 * torn[1], torn
     held = [_sheet_lifted_under_its_weight(grid, GRASP_MARGIN) for grid in (50, 100)]

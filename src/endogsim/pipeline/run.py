@@ -33,6 +33,8 @@ from endogsim.io.runfolder import json_digest, run_folder, tree_digest
 from endogsim.pipeline.scene_from_recon import RealScenario
 from endogsim.recon.config import ReconConfig
 
+__all__ = ["PIPELINE_OPTIMIZER", "PipelineConfig", "STAGES", "pipeline_identify", "run_pipeline"]
+
 #: Where identification's tool colliders get their motion: the reconstruction, or a ground truth (benchmark).
 ToolMotion = Literal["reconstructed", "truth"]
 
@@ -41,9 +43,8 @@ ToolMotion = Literal["reconstructed", "truth"]
 #: 20 calibration frames: 4 in 281 s), where Rprop, the library's default, runs up to the 480-s time budget on
 #: pulling (7 or 8 iterations, as the machine's speed lets the last one start) and is cut by it on CholecSeg8K,
 #: so that its answer depends on the machine's speed; the held-out predictions are as good or better
-#: (docs/REAL_VIDEO.md section 14). The synthetic suite
-#: and the demo keep Rprop: on their contact-rugged losses this local method does worse (docs/IDENTIFICATION.md
-#: section 2).
+#: (docs/REAL_VIDEO.md section 14). The synthetic suite and the demo keep Rprop: on their contact-rugged losses
+#: this local method does worse (docs/IDENTIFICATION.md section 2).
 PIPELINE_OPTIMIZER = "lm"
 
 
@@ -52,7 +53,6 @@ def pipeline_identify(**options) -> IdentifyConfig:
     the ``options`` given (:class:`~endogsim.identify.IdentifyConfig` fields, e.g. ``iters``, ``optimizer``)."""
     return IdentifyConfig.from_json({"optimizer": PIPELINE_OPTIMIZER, **options})
 
-__all__ = ["PipelineConfig", "run_pipeline", "STAGES"]
 
 STAGES = ("reconstruct", "scenario", "identify", "simulate", "report")
 #: Each stage's output, relative to the run folder: what its "done" is checked against.
