@@ -670,6 +670,26 @@ def _sheet_lifted_under_its_weight(grid: int, margin: float, frames: int = 10) -
     return float((res.positions[-1] - parts.x)[ring, 2].mean())
 
 
+def test_bite_ring_distance_follows_the_tissue_around_a_bite():
+    """The ring (free particles one spacing from the bite at rest) starts a spacing away, keeps that distance
+    when the whole tissue moves rigidly, and ends about spacing + 4 mm away when everything outside the
+    bite is pushed 4 mm out from it (a torn-out bite)."""
+    from endogsim.physics import BITE_TEAR_CELLS, bite_ring_distance
+
+    spacing, dx = 1e-3, 2e-3
+    g = np.arange(-10, 11) * spacing
+    x = np.stack(np.meshgrid(g, g, g[8:13], indexing="ij"), -1).reshape(-1, 3)
+    held = np.flatnonzero(np.linalg.norm(x, axis=1) <= 3e-3)
+    free = np.setdiff1d(np.arange(len(x)), held)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    torn = x.copy()
+    torn[free] += 4e-3 * torn[free] / np.linalg.norm(torn[free], axis=1, keepdims=True)
+    ring = bite_ring_distance(x, np.stack([x, x @ turn.T + [0.01, 0.002, -0.005], torn]), held, spacing, dx)
+    assert ring[0] == pytest.approx(0.5) and ring[1] == pytest.approx(0.5)
+    assert BITE_TEAR_CELLS < 2.3 < ring[2] <= 2.5
+    assert not bite_ring_distance(x, np.stack([x, torn]), np.array([], int), spacing, dx).any()
+
+
 def test_a_grasped_sheet_lifted_under_its_weight_comes_with_the_bite():
     """The tissue around a grasper's bite carries the weight of the sheet it lifts. A bite reaching 1 mm
     beyond the tip sphere (8 mm across, 3 cells of grid 50) tears out of the sheet by numerical fracture, by

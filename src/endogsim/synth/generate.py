@@ -42,12 +42,14 @@ from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
 from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
+    BITE_TEAR_CELLS,
     SETTLING_TOLERANCE,
     MPMConfig,
     ObjectMaterials,
     Scenario,
     SimBox,
     bind_gaussians,
+    bite_ring_distance,
     drive_gaussians,
     simulate,
 )
@@ -122,6 +124,7 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
             f"moves a particle by {1e3 * res.settling_left:.4f} mm in its last frame ({100 * cells:.2f}% of a "
             f"grid cell, tolerance {100 * SETTLING_TOLERANCE:g}%): frame 0 would not be the equilibrium a "
             f"video starts at; raise settle_frames")
+    _check_bites(b, filled, scenario, res.positions, b.box_size / config.grid_res)
     tissue = b.gaussians.subset(torch.from_numpy(b.tissue_gaussians))
     binding = bind_gaussians(tissue.means, tissue.object_ids, filled.particles)
     means, covs = [], []
@@ -130,6 +133,25 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
         means.append(m)
         covs.append(c)
     return torch.stack(means), torch.stack(covs), filled
+
+
+def _check_bites(b: BuiltScene, filled: SceneParticles, scenario: Scenario, positions: torch.Tensor,
+                 dx: float) -> None:
+    """Refuse a ground truth whose grasper tears its bite out of the tissue: the torn plug's motion would be
+    numerical fracture, how much of it set by the grid, not the material (``positions`` [T, P, 3] metres)."""
+    spacing = _scene_spec(b, seed=0).scenario.spacing(b.ground_truth)
+    for c in scenario.colliders:
+        if c.holds is None or not len(c.holds):
+            continue
+        ring = bite_ring_distance(filled.particles.x, positions, c.holds.numpy(), spacing, dx)
+        torn = np.flatnonzero(ring > BITE_TEAR_CELLS)
+        if len(torn):
+            worst = int(np.argmax(ring))
+            raise SimulationError(
+                f"scene {b.name}: a grasper's bite tears out of the tissue: from frame {torn[0]} on, the tissue "
+                f"around it lies more than the {BITE_TEAR_CELLS:g} grid cells a B-spline stencil reaches from the "
+                f"bite (median; {ring[worst]:.2f} cells at frame {worst}): numerical fracture, by an amount the "
+                f"grid sets; give the grasper a gentler path")
 
 
 def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):

@@ -13,8 +13,10 @@ __all__ = ["GENERATOR_REVISION", "MAX_FRAMES", "MAX_IMAGE_SIDE", "MAX_PIXEL_FRAM
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
-GENERATOR_REVISION = 8  # 8: a grasper's bite reaches 3 mm beyond its tip sphere, not 1 (GRASP_MARGIN: the 1-mm
-#                        bite tore out of the sheet; stop 55); 7: tissue rests on a Coulomb support
+GENERATOR_REVISION = 9  # 9: a ground truth whose grasper tears its bite out is refused (BITE_TEAR_CELLS),
+#                        so `stomach` is lifted 8 mm, not 16 (stop 56); 8: a grasper's bite reaches 3 mm
+#                        beyond its tip sphere, not 1 (GRASP_MARGIN: the 1-mm bite tore out of the sheet;
+#                        stop 55); 7: tissue rests on a Coulomb support
 #                        (support_friction 1), as on real video (stop 50); 6: settling reaches the
 #                        equilibrium (8 frames at 200/s, checked); 5: organs that meet are not held there,
 #                        one material per place (stop 32)
