@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -277,6 +277,11 @@ def test_search_box_respects_the_stability_limit(problem):
     # Higher nu -> lower limit (near-incompressible materials need smaller steps).
     hi = stable_log10_E_max(problem, torch.tensor([0.3, 0.49]), torch.tensor([1000.0, 1000.0]), fast_config(E_max=1e9))
     assert hi[0] > hi[1]
+    # Mass scaling k multiplies the densities the simulator sees, so the CFL-limited E goes up k-fold (real video's
+    # k = 4: the box ended at 250 kPa on EndoNeRF pulling where the simulation was stable to 1 MPa).
+    scaled = replace(problem, scenario=replace(problem.scenario, mass_scaling=4.0))
+    hi4 = stable_log10_E_max(scaled, torch.tensor([0.3, 0.49]), torch.tensor([1000.0, 1000.0]), fast_config(E_max=1e9))
+    assert torch.allclose(hi4 - hi, torch.full_like(hi, math.log10(4.0)), atol=1e-9)
 
 
 def test_global_material_ties_parameters():

@@ -192,10 +192,12 @@ class IdentifyResult:
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
     """Upper end of the search box for log10 E per parameter slot: ``E_max``, and the stiffest material the
-    simulation takes within ``max_substeps`` per frame at ``nu`` (the CFL rule; ``stability_margin`` of it)."""
+    simulation takes within ``max_substeps`` per frame at ``nu`` (the CFL rule; ``stability_margin`` of it).
+    ``density`` is the material's; the CFL rule sees it times the scenario's mass scaling, as the simulator does."""
     out = []
+    k = problem.scenario.mass_scaling
     for n, rho in zip(nu.detach().double().tolist(), density.detach().double().tolist()):
-        e = config.stability_margin * max_stable_E(n, rho, problem.mpm, problem.scenario.box.size,
+        e = config.stability_margin * max_stable_E(n, k * rho, problem.mpm, problem.scenario.box.size,
                                                     substeps=config.max_substeps)
         out.append(math.log10(min(e, config.E_max)))
     return torch.tensor(out, dtype=torch.float64)
@@ -211,7 +213,8 @@ def check_stable(problem: SimScene, fld: MaterialField, config: IdentifyConfig) 
     for r in fld.deformable:
         if r.object_id not in problem.deformable_ids:
             continue
-        emax = max_stable_E(r.nu, r.density, mpm, problem.scenario.box.size, substeps=config.max_substeps)
+        emax = max_stable_E(r.nu, problem.scenario.mass_scaling * r.density, mpm, problem.scenario.box.size,
+                            substeps=config.max_substeps)
         if r.E > emax:
             raise SimulationError(
                 f"object {r.object_id} ({r.name!r}): E = {r.E:.4g} Pa (nu {r.nu:.3f}) needs more than "
