@@ -88,6 +88,24 @@ def test_report_is_well_formed_and_links_exist(run_with_simulation, tmp_path, mo
                      r"moved \d\.\d{4} mm", text)  # what the settling left (metrics.json "settling")
 
 
+def test_report_says_whether_a_grasps_bite_held(run_with_simulation, tmp_path):
+    import json
+    import shutil
+
+    from endogsim.evaluate.report_html import write_report
+
+    run, sim = run_with_simulation
+    assert json.loads((sim / "summary.json").read_text())["grasp_bites"] == []  # `press` grasps nothing
+    torn = tmp_path / "torn"
+    shutil.copytree(sim, torn)
+    s = json.loads((torn / "summary.json").read_text())
+    s["grasp_bites"] = [{"held_particles": 240, "ring_cells_max": 1.93, "frame_of_max": 3, "torn": True,
+                         "tolerance_cells": 1.5}]
+    (torn / "summary.json").write_text(json.dumps(s))
+    text = write_report(run, simulations=[sim, torn], out=tmp_path / "r.html").read_text()
+    assert text.count("TORE OUT of the tissue") == 1 and "at most 1.93 grid cells (median) from it, frame 3" in text
+
+
 def test_report_cli(run_with_simulation):
     from typer.testing import CliRunner
 

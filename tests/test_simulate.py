@@ -130,6 +130,27 @@ def test_too_stiff_materials_raise_simulation_error(tiny, tmp_path):
         simulate_interaction(tiny, "press", empty, tmp_path / "empty")
 
 
+def test_a_grasp_that_tears_its_bite_out_is_reported(tiny, tmp_path):
+    """A 500-Pa tissue grasped and drawn 12 mm up and 12 mm sideways in 4 frames: the tissue around the bite
+    ends 1.93 cells from it (a 3-mm tug on the prior stays within 0.53), so the bite tore out by numerical
+    fracture, and summary.json and the CLI say so."""
+    from endogsim.cli.main import app
+    from endogsim.materials.field import MaterialField, MaterialRecord
+
+    MaterialField([MaterialRecord(name="tissue", object_id=1, klass="liver", E=500.0, nu=0.4, density=1060.0),
+                   MaterialRecord(name="probe", object_id=2, klass="instrument", rigid=True, model="rigid", E=2e11,
+                                  nu=0.3, density=7850.0)]).save(tmp_path / "soft.json")
+    f = tmp_path / "yank.json"
+    f.write_text(json.dumps({"name": "yank", "frames": FRAMES, "grasp": {
+        "at": [0.0, 0.0], "radius": 0.003, "keyframes": [[0, 0, 0, 0], [1, 0.012, 0, -0.012]]}}))
+    r = CliRunner().invoke(app, ["simulate", str(tiny), "--interaction", str(f), "--materials",
+                                 str(tmp_path / "soft.json"), "--out", str(tmp_path / "yank"), "--no-ply"])
+    assert r.exit_code == 0, r.output
+    [bite] = json.loads((tmp_path / "yank" / "summary.json").read_text())["grasp_bites"]
+    assert bite["torn"] and bite["ring_cells_max"] > bite["tolerance_cells"] == 1.5
+    assert "bite tore out of the tissue" in " ".join(r.output.split())
+
+
 def test_cli_grasp_from_file_and_clear_errors(tiny, tmp_path):
     from endogsim.cli.main import app
 
@@ -145,6 +166,10 @@ def test_cli_grasp_from_file_and_clear_errors(tiny, tmp_path):
     # The grasp holds the tissue it closes on, which follows it the whole 3 mm (a Dirichlet condition).
     assert s["resolved"]["grasp_particles"] > 0 and s["displacement"]["tissue"]["max_mm"] == pytest.approx(3.0, abs=0.05)
     assert np.allclose(s["resolved"]["grasp_point"][:2], [0.0, 0.0], atol=0.004)
+    # A 3-mm tug keeps the tissue around the bite within reach of it (the ring starts half a cell away).
+    [bite] = s["grasp_bites"]
+    assert bite["held_particles"] == s["resolved"]["grasp_particles"] and not bite["torn"]
+    assert 0.45 < bite["ring_cells_max"] < bite["tolerance_cells"]
     f.write_text(json.dumps({"name": "bad", "grasp": {"keyframes": [[0.2, 0, 0, 0]]}}))
     r = runner.invoke(app, ["simulate", str(tiny), "--interaction", str(f), "--out", str(tmp_path / "bad")])
     assert r.exit_code == 2 and "grasp.keyframes" in r.output

@@ -44,6 +44,11 @@ def register(app: typer.Typer) -> None:
                     ["object", "E (Pa)", "nu", "source", "max displacement (mm)", "at last frame (mm)"],
                     [(n, v["E"], f"{v['nu']:.3f}", v["source"], s["displacement"][n]["max_mm"],
                       s["displacement"][n]["max_last_mm"]) for n, v in s["materials"].items() if not v["rigid"]])
+        for b in s["grasp_bites"]:
+            if b["torn"]:
+                console.print(f"[yellow]the grasp's bite tore out of the tissue (numerical fracture): by frame "
+                              f"{b['frame_of_max']} the tissue around it lies {b['ring_cells_max']:.2f} grid cells "
+                              f"(median) from it, beyond {b['tolerance_cells']:g}; pull less far or less fast[/yellow]")
         console.print(f"wrote {out} (simulate {s['seconds']['simulate']:.1f} s, render + write "
                       f"{s['seconds']['render_and_write']:.1f} s)")
 

@@ -416,6 +416,11 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
         ply_link = f'; PLY sequence: <a href="{_e(rel(d / ply[0]))}">{_e(rel(d / ply[0]))}</a> ... ({len(ply)} files)' if ply else ""
         parts.append(f'<p class="note">{s["frames"]} frames of {s["frame_dt"] * 1e3:.3g} ms, {s["substeps"]} substeps; '
                      f"materials {_e(mats)}{ply_link}</p>")
+        for b in s.get("grasp_bites", []):  # summaries written before stop 56 have none
+            held = ("TORE OUT of the tissue (numerical fracture)" if b["torn"] else "stayed in the tissue")
+            parts.append(f'<p class="note">the grasp ({b["held_particles"]} particles held) {held}: the tissue around '
+                         f'its bite came at most {b["ring_cells_max"]:.2f} grid cells (median) from it, frame '
+                         f'{b["frame_of_max"]} (tolerance {b["tolerance_cells"]:g})</p>')
 
     summary = run / "summary.txt"
     if summary.is_file():

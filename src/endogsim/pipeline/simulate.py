@@ -6,7 +6,8 @@ identified) materials.
   frames/frame_%04d.png       the same frames as PNG
   ply/frame_%04d.ply          the Gaussians of every frame (3DGS layout with object ids)
   summary.json                scene, interaction (with resolved points), materials, numerics,
-                              displacement statistics (mm), timings, file list
+                              displacement statistics (mm), whether a grasp's bite held (``grasp_bites``),
+                              timings, file list
   interaction.json, materials.json   the inputs actually used
 """
 
@@ -300,6 +301,26 @@ def simulate_interaction(
         return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress)
 
 
+def _bite_records(problem, positions: torch.Tensor) -> list[dict]:
+    """Whether each grasp's bite stayed in its tissue over a simulation (``positions`` [T, P, 3] metres): per
+    collider that holds particles, {"held_particles", "ring_cells_max" (the tissue around the bite: its median
+    distance from the bite, grid cells, :func:`endogsim.physics.bite_ring_distance`), "frame_of_max", "torn"
+    (beyond :data:`endogsim.physics.BITE_TEAR_CELLS`: the bite tore out, by numerical fracture), "tolerance_cells"}."""
+    from endogsim.physics import BITE_TEAR_CELLS, bite_ring_distance
+
+    spacing = float(problem.particles.volume.double().median()) ** (1.0 / 3.0)  # each particle stands for spacing^3
+    dx = problem.scenario.box.size / problem.mpm.grid_res
+    out = []
+    for c in problem.scenario.colliders:
+        if c.holds is None or not len(c.holds):
+            continue
+        ring = bite_ring_distance(problem.particles.x, positions, c.holds.numpy(), spacing, dx)
+        out.append({"held_particles": int(len(c.holds)), "ring_cells_max": float(ring.max()),
+                    "frame_of_max": int(ring.argmax()), "torn": bool(ring.max() > BITE_TEAR_CELLS),
+                    "tolerance_cells": BITE_TEAR_CELLS})
+    return out
+
+
 def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: dict, folder: Path, out: Path,
                         fps: float, write_ply_sequence: bool, progress) -> dict:
     """Run the built interaction and write ``out`` (see :func:`simulate_interaction`)."""
@@ -354,6 +375,7 @@ def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: d
         displacement[problem.spec.object(oid).name] = {
             "max_mm": float(d.max()) * 1e3, "mean_last_mm": float(d[-1].mean()) * 1e3,
             "max_last_mm": float(d[-1].max()) * 1e3}
+    bites = _bite_records(problem, res.positions)
     inter_json = inter.model_dump(mode="json")
     write_json_atomic(out / "interaction.json", inter_json)
     fld.save(out / "materials.json")
@@ -363,7 +385,8 @@ def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: d
                                "rigid": r.rigid, "source": r.source} for r in fld.records},
         "frames": T, "frame_dt": problem.mpm.frame_dt, "substeps": res.substeps, "dt": res.dt,
         "particles": len(problem.particles), "gaussians": len(problem.gaussians),
-        "displacement": displacement, "mean_flow_px": float(r.flow.norm(dim=-1).mean()) if r.flow.numel() else 0.0,
+        "displacement": displacement, "grasp_bites": bites,
+        "mean_flow_px": float(r.flow.norm(dim=-1).mean()) if r.flow.numel() else 0.0,
         "seconds": {"simulate": t_sim, "render_and_write": t_render},
         "units": {"E": "Pa", "density": "kg/m^3", "frame_dt": "s", "dt": "s", "displacement": "mm"},
         "files": {"video": video.name, "frames": [f"frames/{p.name}" for p in pngs],
