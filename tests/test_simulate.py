@@ -148,6 +148,7 @@ def test_a_grasp_that_tears_its_bite_out_is_reported(tiny, tmp_path):
     assert r.exit_code == 0, r.output
     [bite] = json.loads((tmp_path / "yank" / "summary.json").read_text())["grasp_bites"]
     assert bite["torn"] and bite["ring_cells_max"] > bite["tolerance_cells"] == 1.5
+    assert 0 < bite["torn_from"] <= bite["frame_of_max"]
     assert "bite tore out of the tissue" in " ".join(r.output.split())
 
 
@@ -168,7 +169,7 @@ def test_cli_grasp_from_file_and_clear_errors(tiny, tmp_path):
     assert np.allclose(s["resolved"]["grasp_point"][:2], [0.0, 0.0], atol=0.004)
     # A 3-mm tug keeps the tissue around the bite within reach of it (the ring starts half a cell away).
     [bite] = s["grasp_bites"]
-    assert bite["held_particles"] == s["resolved"]["grasp_particles"] and not bite["torn"]
+    assert bite["held_particles"] == s["resolved"]["grasp_particles"] and not bite["torn"] and bite["torn_from"] is None
     assert 0.45 < bite["ring_cells_max"] < bite["tolerance_cells"]
     f.write_text(json.dumps({"name": "bad", "grasp": {"keyframes": [[0.2, 0, 0, 0]]}}))
     r = runner.invoke(app, ["simulate", str(tiny), "--interaction", str(f), "--out", str(tmp_path / "bad")])

@@ -45,7 +45,7 @@ Public API
   :func:`capsule_collider` the collider itself (a pushing one grown by :data:`PUSH_CONTACT_CELLS`, 0 cells),
   :func:`grasped_particles` the tissue a grasper's jaws hold (``RigidCollider.holds``: held particles move
   rigidly with the instrument); :func:`bite_ring_distance` how far the tissue around a bite has come from
-  it (a bite tears out past :data:`BITE_TEAR_CELLS`).
+  it (a bite tears out past :data:`BITE_TEAR_CELLS`), :func:`bite_records` that for every grasp of a run.
 - :func:`simulate` (particles, materials, scenario, config, num_frames, v0=None) -> :class:`SimResult`
   (positions [T,P,3] m, F [T,P,3,3], times [T] s, substeps, dt). Frame 0 = initial.
 - :func:`mpm_rollout` (particles, materials, scenario, config, num_frames, grad_mode
@@ -70,7 +70,8 @@ _EXPORTS = {
     "Scenario": "config", "SETTLING_TOLERANCE": "config",
     "ObjectMaterials": "materials",
     "GaussianBinding": "particles", "Particles": "particles", "bind_gaussians": "particles",
-    "BITE_TEAR_CELLS": "particles", "GRASP_MARGIN": "particles", "bite_ring_distance": "particles",
+    "BITE_TEAR_CELLS": "particles", "GRASP_MARGIN": "particles", "bite_records": "particles",
+    "bite_ring_distance": "particles",
     "PUSH_CONTACT_CELLS": "particles", "capsule_collider": "particles",
     "capsule_collider_points": "particles",
     "grasped_particles": "particles", "drive_gaussians": "particles", "extrude_along_rays": "particles",

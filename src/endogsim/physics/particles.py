@@ -398,6 +398,24 @@ def bite_ring_distance(rest, positions, held, spacing: float, dx: float) -> np.n
     return out
 
 
+def bite_records(rest, positions, colliders, spacing: float, dx: float) -> list[dict]:
+    """Whether each grasp's bite stayed in its tissue over a simulation: per collider of ``colliders`` that
+    holds particles (``RigidCollider.holds``), {"held_particles", "ring_cells_max" (the largest
+    :func:`bite_ring_distance`, grid cells), "frame_of_max", "torn_from" (the first frame past
+    :data:`BITE_TEAR_CELLS`, or None), "torn", "tolerance_cells"}. ``rest`` [P, 3] and ``positions``
+    [T, P, 3] metres; ``spacing`` the particle spacing and ``dx`` the grid cell (metres)."""
+    out = []
+    for c in colliders:
+        if c.holds is None or not len(c.holds):
+            continue
+        ring = bite_ring_distance(rest, positions, c.holds.numpy(), spacing, dx)
+        torn = np.flatnonzero(ring > BITE_TEAR_CELLS)
+        out.append({"held_particles": int(len(c.holds)), "ring_cells_max": float(ring.max()),
+                    "frame_of_max": int(ring.argmax()), "torn_from": int(torn[0]) if len(torn) else None,
+                    "torn": bool(len(torn)), "tolerance_cells": BITE_TEAR_CELLS})
+    return out
+
+
 #: How far beyond its radius a pushing instrument marks grid nodes (cells); 0: the nodes inside its capsule.
 #: Those stop short of the surface by a fraction of a cell that depends on where the grid falls, so a probe
 #: acts smaller than it is, the more so the coarser the grid (a 3-mm probe is about one cell). Grown by a

@@ -302,23 +302,12 @@ def simulate_interaction(
 
 
 def _bite_records(problem, positions: torch.Tensor) -> list[dict]:
-    """Whether each grasp's bite stayed in its tissue over a simulation (``positions`` [T, P, 3] metres): per
-    collider that holds particles, {"held_particles", "ring_cells_max" (the tissue around the bite: its median
-    distance from the bite, grid cells, :func:`endogsim.physics.bite_ring_distance`), "frame_of_max", "torn"
-    (beyond :data:`endogsim.physics.BITE_TEAR_CELLS`: the bite tore out, by numerical fracture), "tolerance_cells"}."""
-    from endogsim.physics import BITE_TEAR_CELLS, bite_ring_distance
+    """:func:`endogsim.physics.bite_records` of a simulation of ``problem`` (``positions`` [T, P, 3] metres)."""
+    from endogsim.physics import bite_records
 
     spacing = float(problem.particles.volume.double().median()) ** (1.0 / 3.0)  # each particle stands for spacing^3
-    dx = problem.scenario.box.size / problem.mpm.grid_res
-    out = []
-    for c in problem.scenario.colliders:
-        if c.holds is None or not len(c.holds):
-            continue
-        ring = bite_ring_distance(problem.particles.x, positions, c.holds.numpy(), spacing, dx)
-        out.append({"held_particles": int(len(c.holds)), "ring_cells_max": float(ring.max()),
-                    "frame_of_max": int(ring.argmax()), "torn": bool(ring.max() > BITE_TEAR_CELLS),
-                    "tolerance_cells": BITE_TEAR_CELLS})
-    return out
+    return bite_records(problem.particles.x, positions, problem.scenario.colliders, spacing,
+                        problem.scenario.box.size / problem.mpm.grid_res)
 
 
 def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: dict, folder: Path, out: Path,

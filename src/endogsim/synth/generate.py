@@ -42,14 +42,13 @@ from endogsim.gaussians.ply import write_ply
 from endogsim.gaussians.render import rasterize
 from endogsim.io.atomic import atomic_folder, write_json_atomic
 from endogsim.physics import (
-    BITE_TEAR_CELLS,
     SETTLING_TOLERANCE,
     MPMConfig,
     ObjectMaterials,
     Scenario,
     SimBox,
     bind_gaussians,
-    bite_ring_distance,
+    bite_records,
     drive_gaussians,
     simulate,
 )
@@ -140,18 +139,13 @@ def _check_bites(b: BuiltScene, filled: SceneParticles, scenario: Scenario, posi
     """Refuse a ground truth whose grasper tears its bite out of the tissue: the torn plug's motion would be
     numerical fracture, how much of it set by the grid, not the material (``positions`` [T, P, 3] metres)."""
     spacing = _scene_spec(b, seed=0).scenario.spacing(b.ground_truth)
-    for c in scenario.colliders:
-        if c.holds is None or not len(c.holds):
-            continue
-        ring = bite_ring_distance(filled.particles.x, positions, c.holds.numpy(), spacing, dx)
-        torn = np.flatnonzero(ring > BITE_TEAR_CELLS)
-        if len(torn):
-            worst = int(np.argmax(ring))
+    for bite in bite_records(filled.particles.x, positions, scenario.colliders, spacing, dx):
+        if bite["torn"]:
             raise SimulationError(
-                f"scene {b.name}: a grasper's bite tears out of the tissue: from frame {torn[0]} on, the tissue "
-                f"around it lies more than the {BITE_TEAR_CELLS:g} grid cells a B-spline stencil reaches from the "
-                f"bite (median; {ring[worst]:.2f} cells at frame {worst}): numerical fracture, by an amount the "
-                f"grid sets; give the grasper a gentler path")
+                f"scene {b.name}: a grasper's bite tears out of the tissue: from frame {bite['torn_from']} on, the "
+                f"tissue around it lies more than the {bite['tolerance_cells']:g} grid cells a B-spline stencil "
+                f"reaches from the bite (median; {bite['ring_cells_max']:.2f} cells at frame {bite['frame_of_max']}): "
+                f"numerical fracture, by an amount the grid sets; give the grasper a gentler path")
 
 
 def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):
