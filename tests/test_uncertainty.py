@@ -184,10 +184,11 @@ def test_a_side_without_a_significant_rise_nearby_is_tested_at_the_search_box_en
     assert sl.significant == (True, False) and not identifiability(sl, None, "the search box", significant_z(n))[0]
 
 
-def test_values_that_fit_better_than_the_estimate_lie_inside_its_interval():
+def test_values_the_data_do_not_exclude_lie_inside_the_interval():
     """A bump above the optimum excludes its value, but the loss is lower still farther up (the optimisation
     stopped short of the slice's minimum, as on ``impulse_paper``): the interval reaches past the lower values,
-    here to the search box's end, and the report says so."""
+    here to the search box's end, and the report says so. A farther value that is not excluded either (the
+    demo's seed 7) lies inside too: the interval is the hull of the values not excluded."""
     n, best = 10, 3.4
     thr, sig = critical_z(n), significant_z(n)
     z_of = {3.3: 5.0, 3.5: 1.2, 3.7: 0.2, 4.4: -2.0, 6.0: -2.5}  # a bump at 3.5 between thr and sig
@@ -198,7 +199,10 @@ def test_values_that_fit_better_than_the_estimate_lie_inside_its_interval():
     z_of[6.0] = 1.5  # lower at 4.4 only: the end is where z crosses thr beyond it
     sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
     assert sl.interval[1] == pytest.approx(4.4 + 1.6 * (thr + 2.0) / 3.5) and sl.bounded == (True, True)
-    z_of[4.4] = 0.3  # no value fits better: the bump ends the interval, as before
+    z_of[4.4] = 0.3  # no value fits better, but 4.4 is not excluded: the end is where z crosses thr beyond it
+    sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
+    assert sl.interval[1] == pytest.approx(4.4 + 1.6 * (thr - 0.3) / 1.2) and sl.bounded == (True, True)
+    z_of[3.7], z_of[4.4] = 1.3, 1.4  # every value past the bump is excluded: the bump ends the interval
     sl = walk_slice(best, E_STEPS, (1.7, 6.0), lambda v: (z_of[round(v, 6)], 1.0, z_of[round(v, 6)]), thr, sig)
     assert sl.interval[1] == pytest.approx(best + 0.1 * thr / 1.2)
 
