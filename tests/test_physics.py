@@ -375,6 +375,40 @@ def test_an_organ_filled_behind_another_gives_each_place_one_material():
     assert sp.slabs[1].behind(column).tolist() == [False, True]
 
 
+def test_tissue_an_instrument_hides_is_filled_on_under_it_not_held_around_it():
+    """A 40 x 30 mm patch whose reconstruction has a notch where a 6-mm shaft 5 mm in front hid it in every
+    frame (a grasper's bite moves with the jaws), open at the patch's right edge where the shaft leaves it.
+    Without the instrument the notch is outline: the tissue around it is a held border band, and there is
+    no tissue under the jaws to hold. With it, the tissue goes on under the shaft and nothing around the
+    notch is held; the band along the real outline stays, also under the shaft, and nothing is added beyond
+    the patch where the shaft goes on over the background (seen on the demo's path: a grasper lifting
+    `tiny`'s patch held 0 particles in a held band, 158 with this)."""
+    from endogsim.scene.particles import build_particles
+
+    spec = _two_object_spec(0.003, 0.003, 0.004, 0.004)
+    cam = Camera(torch.tensor(spec.camera.K), 320, 240)
+    tissue = {1: _patch(-0.02, 0.02, -0.015, 0.015, 0.1, hole=(-0.003, 0.025, -0.003, 0.003))}
+    shaft = _patch(-0.003, 0.04, -0.003, 0.003, 0.095, step=0.001)
+    plain = build_particles(tissue, spec, cam, spec.scenario.identification)
+    hidden = build_particles(tissue, spec, cam, spec.scenario.identification, instruments={2: shaft})
+    for sp, filled in ((plain, False), (hidden, True)):
+        x = sp.particles.x.double().numpy()
+        under = (np.abs(x[:, 1]) < 0.002) & (x[:, 0] > 0.0) & (x[:, 0] < 0.015)
+        beside = (np.abs(np.abs(x[:, 1]) - 0.0045) < 0.0005) & (x[:, 0] > 0.0) & (x[:, 0] < 0.015)
+        mouth = (np.abs(x[:, 1]) < 0.002) & (x[:, 0] > 0.0185)
+        assert beside.sum() > 50
+        if filled:
+            assert under.sum() > 100 and not sp.pinned[under].any() and not sp.pinned[beside].any()
+            assert mouth.sum() > 10 and sp.pinned[mouth].all()  # the outline's band, under the shaft too
+        else:
+            assert under.sum() == 0 and sp.pinned[beside].all()
+        assert x[:, 0].max() <= plain.particles.x[:, 0].max()  # nothing beyond the patch's right edge
+    # An instrument over the background beside the tissue changes nothing.
+    aside = build_particles(tissue, spec, cam, spec.scenario.identification,
+                            instruments={2: _patch(0.025, 0.04, -0.003, 0.003, 0.095, step=0.001)})
+    assert torch.equal(aside.particles.x, plain.particles.x) and (aside.pinned == plain.pinned).all()
+
+
 def _surface_gaussians(n=20, depth=0.1, sh_degree=0):
     u = torch.linspace(-0.01, 0.01, n)
     X, Y = torch.meshgrid(u, u, indexing="ij")

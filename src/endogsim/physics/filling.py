@@ -8,6 +8,8 @@ interior filling, for a one-sided view):
 1. the surface samples are binned on a grid in the image plane (u = x / z, v = y / z in the camera frame)
    and each cell keeps the nearest sample's range (distance from the camera): the front surface;
    small holes in the footprint are closed and filled from the nearest cell, spikes removed by a 3x3 median;
+   where instruments in front hide the surface (``hidden_by``), the notch they cut into the footprint is
+   closed too (:func:`hidden_part`): the tissue goes on under the instrument;
 2. every point of a lattice of spacing ``spacing`` (offset ``origin``, e.g. at the quarter points of the
    simulation grid's cells for two particles per cell per axis) whose ray hits the footprint is kept when
    its range lies within [front, front + thickness): the slab, filled evenly;
@@ -30,7 +32,7 @@ import torch
 from endogsim.errors import SimulationError
 from endogsim.gaussians.camera import Camera
 
-__all__ = ["FilledSolid", "SurfaceMap", "surface_map", "fill_behind_surface", "outline_beside"]
+__all__ = ["FilledSolid", "SurfaceMap", "surface_map", "hidden_part", "fill_behind_surface", "outline_beside"]
 
 
 @dataclass
@@ -102,20 +104,52 @@ class SurfaceMap:
         return ok & np.isfinite(self.front[i, j])
 
 
-def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2) -> SurfaceMap:
+def _image_plane(points: np.ndarray | torch.Tensor, camera: Camera, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points [N, 3] and their image-plane coordinates uv [N, 2] (u = x / z, v = y / z) of world
+    points ``points`` [N, 3] (metres) that must all lie in front of the camera (``what`` names them)."""
+    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise SimulationError(f"{what} must be [N, 3], got shape {pts.shape}")
+    pc = _to_camera(pts, camera)
+    if (pc[:, 2] <= 1e-6).any():
+        raise SimulationError(f"{what} behind the camera cannot be seen along viewing rays")
+    return pc, pc[:, :2] / pc[:, 2:3]
+
+
+def hidden_part(footprint: np.ndarray, hiding: np.ndarray) -> np.ndarray:
+    """[Nu, Nv] bool: the cells of ``hiding`` (an instrument's image footprint, bool [Nu, Nv]) that the surface
+    whose footprint is ``footprint`` (bool [Nu, Nv]) goes on under.
+
+    An instrument in front of the tissue cuts a notch into the tissue's footprint, open to the outside where
+    its shaft leaves the tissue, so hole filling does not close it; seen as the footprint's outline, the
+    notch would make the tissue around the instrument a border band, held still (the instrument then holds
+    and moves nothing). A closing of the footprint as wide as the instrument closes the notch: only cells of
+    the instrument's footprint are added, and none beyond the tissue's outline, where the closing of a
+    straight or convex outline adds nothing.
+    """
+    from scipy import ndimage
+
+    if not hiding.any():
+        return np.zeros_like(footprint)
+    r = int(np.ceil(ndimage.distance_transform_edt(hiding).max())) + 2  # the instrument's half-width, cells
+    disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+    closed = ndimage.binary_closing(np.pad(footprint, r + 1), structure=disk)[r + 1:-r - 1, r + 1:-r - 1]
+    return closed & hiding & ~footprint
+
+
+def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2,
+                hidden_by: np.ndarray | torch.Tensor | None = None) -> SurfaceMap:
     """The :class:`SurfaceMap` of surface samples ``points`` [N, 3] (metres, world), on image-plane cells a
     little finer than ``spacing`` at the surface's depth, but never finer than half the samples' own spacing;
-    holes up to about ``closing_cells`` are closed."""
+    holes up to about ``closing_cells`` are closed, and so are notches that instruments in front cut into the
+    footprint (``hidden_by``: [M, 3] world samples of the instruments' surfaces, e.g. their Gaussian centres;
+    :func:`hidden_part`)."""
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
-        raise SimulationError(f"a surface needs at least 3 samples [N, 3], got shape {pts.shape}")
-    pc = _to_camera(pts, camera)
-    if (pc[:, 2] <= 1e-6).any():
-        raise SimulationError("surface points behind the camera cannot be seen along viewing rays")
-    uv = pc[:, :2] / pc[:, 2:3]
+    pc, uv = _image_plane(points, camera, "surface points")
+    if len(pc) < 3:
+        raise SimulationError(f"a surface needs at least 3 samples [N, 3], got {len(pc)}")
     rng = np.linalg.norm(pc, axis=1)
     # A map finer than the samples is a map of dots: with samples more than two cells apart the closing below
     # no longer joins them, and the footprint falls apart into holes whose edges make every lattice point a
@@ -130,6 +164,16 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
     seen = np.isfinite(front)
     footprint = ndimage.binary_closing(seen, iterations=closing_cells) | seen
     footprint = ndimage.binary_fill_holes(footprint)
+    if hidden_by is not None and len(hidden_by):
+        hiding = np.zeros(shape, bool)
+        _, huv = _image_plane(hidden_by, camera, "instrument points")
+        hij = np.floor((huv - lo) / du).astype(int)
+        on = (hij >= 0).all(1) & (hij < np.asarray(shape)).all(1)
+        hiding[hij[on, 0], hij[on, 1]] = True
+        # The instrument's samples lie apart, and its outline and the tissue's need not meet: grown by the
+        # holes the footprint closes, with its own holes filled, it covers the gap between them.
+        hiding = ndimage.binary_fill_holes(ndimage.binary_dilation(hiding, iterations=closing_cells))
+        footprint |= hidden_part(footprint, hiding)
     # Cells of the footprint without a sample take the nearest sampled cell's range; a 3x3 median removes spikes.
     _, (ni, nj) = ndimage.distance_transform_edt(~seen, return_indices=True)
     front = np.where(footprint, front[ni, nj], 0.0)
@@ -140,7 +184,8 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
 
 
 def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thickness: float, spacing: float,
-                        origin: np.ndarray | None = None, closing_cells: int = 2) -> tuple[FilledSolid, SurfaceMap]:
+                        origin: np.ndarray | None = None, closing_cells: int = 2,
+                        hidden_by: np.ndarray | torch.Tensor | None = None) -> tuple[FilledSolid, SurfaceMap]:
     """Fill the slab of ``thickness`` behind the surface sampled by ``points`` with a lattice of ``spacing``.
 
     Args:
@@ -152,13 +197,14 @@ def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thick
         origin: [3] a lattice point (metres, world); default: the lattice through (spacing / 2, ...), i.e.
             cell-centred on a grid of spacing through the world origin.
         closing_cells: holes in the footprint up to about this many image-plane cells are closed.
+        hidden_by: [M, 3] world samples of instruments in front of the surface (:func:`surface_map`).
     Returns:
         the :class:`FilledSolid` (empty when no lattice point lies in the slab: a surface smaller than about
         the spacing) and the :class:`SurfaceMap` it was filled behind.
     """
     if not (thickness > 0 and spacing > 0):
         raise SimulationError(f"thickness {thickness} m and spacing {spacing} m must be > 0")
-    smap = surface_map(points, camera, spacing, closing_cells)
+    smap = surface_map(points, camera, spacing, closing_cells, hidden_by)
     pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
     rng = np.linalg.norm(_to_camera(pts, camera), axis=1)
     # Lattice points in the box the slab can occupy (camera frame -> world via the inverse viewmat).

@@ -502,7 +502,7 @@ def scene_from_reconstruction(
     spec = scene_spec_from_json(doc, out / "scene.json")
     ident = spec.scenario.identification
     tissue_particles = build_particles(gaussian_surfaces(g0, [o.id for o in spec.deformable]), spec, rec.camera,
-                                       ident).particles.x.double().numpy()
+                                       ident, instruments=gaussian_surfaces(g0, tool_ids)).particles.x.double().numpy()
     if gt is None:
         field = (np.ones((cam.height, cam.width), bool) if rec.field_of_view is None
                  else rec.field_of_view.cpu().numpy().astype(bool))

@@ -164,7 +164,7 @@ def gaussian_surfaces(g: Gaussians, object_ids: list[int], min_opacity: float = 
 
 
 def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Camera,
-                    settings: SimSettings) -> SceneParticles:
+                    settings: SimSettings, instruments: dict[int, np.ndarray] | None = None) -> SceneParticles:
     """Fill every deformable object of ``surfaces`` and apply its boundary conditions.
 
     Args:
@@ -172,12 +172,17 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
         spec: the scene (objects' names, the scenario's thicknesses and boundary conditions, the sim box).
         camera: the camera the surfaces are seen from.
         settings: the discretisation (its particle spacing and grid set the lattice).
+        instruments: {object id: [M, 3] samples of an instrument's surface} in the same frame (metres, world).
+            A reconstruction has no tissue where an instrument hid it in every frame (a grasper's bite moves
+            with the jaws); the tissue is filled on under them (:func:`~endogsim.physics.filling.hidden_part`)
+            instead of ending, and being held, around them. A ground truth's whole surfaces need none.
     """
     sc: ScenarioSpec = spec.scenario
     spacing = sc.spacing(settings)
     # Lattice points at the particle spacing through box_lo + spacing / 2: with spacing = dx / 2 these are
     # the quarter points of every grid cell, the usual two particles per cell and axis.
     origin = np.asarray(sc.box_lo, float) + spacing / 2
+    hiding = np.concatenate([np.zeros((0, 3)), *(instruments or {}).values()])
     solids, maps = {}, {}
     for oid, pts in surfaces.items():
         name = spec.object(oid).name
@@ -186,7 +191,8 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
             raise DataError(f"scene {spec.name!r}: object {name!r} has no thickness behind its surface "
                             "(scenario.extrusion.thickness)")
         if len(pts) >= 3:
-            solids[oid], maps[oid] = fill_behind_surface(pts, camera, thickness, spacing, origin=origin)
+            solids[oid], maps[oid] = fill_behind_surface(pts, camera, thickness, spacing, origin=origin,
+                                                         hidden_by=hiding)
     kept = one_object_per_place(solids, origin, spacing)
     parts, pinned, borders, slabs = [], [], [], {}
     for oid, pts in surfaces.items():
