@@ -554,7 +554,8 @@ def test_a_real_scene_moves_its_border_along_the_tracks_and_an_interaction_holds
     from endogsim.scene.particles import build_particles, gaussian_surfaces
 
     filled = build_particles(gaussian_surfaces(p.gaussians, p.deformable_ids), p.spec, p.camera,
-                             p.spec.scenario.identification)
+                             p.spec.scenario.identification,
+                             instruments=gaussian_surfaces(p.gaussians, [o.id for o in p.spec.rigid]))
     with pytest.warns(DataWarning, match="no tissue track of its own"):
         (other,) = filled.moving_anchors(p.tracks, np.full(len(p.tracks.index), -1), 0.002)
     torch.testing.assert_close(other.positions, anchor.positions)

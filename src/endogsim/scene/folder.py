@@ -191,7 +191,7 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     # Particles always come from the frame-0 Gaussians and the scenario's description, as on a real video
     # (a benchmark's ground-truth particles are never read: identifying from them would be an inverse crime).
     filled = build_particles(gaussian_surfaces(g, deformable), spec, camera, ident,
-                             instruments=gaussian_surfaces(g, [o.id for o in spec.objects if o.rigid]))
+                             instruments=gaussian_surfaces(g, [o.id for o in spec.rigid]))
     particles = filled.particles
 
     tool_tf = {}

@@ -252,6 +252,11 @@ class SceneSpec:
     def deformable(self) -> list[SceneObject]:
         return [o for o in self.objects if not o.rigid]
 
+    @property
+    def rigid(self) -> list[SceneObject]:
+        """The rigid objects: the instruments."""
+        return [o for o in self.objects if o.rigid]
+
     def object(self, name_or_id: str | int) -> SceneObject:
         for o in self.objects:
             if o.id == name_or_id or o.name == name_or_id:
