@@ -551,11 +551,9 @@ def test_a_real_scene_moves_its_border_along_the_tracks_and_an_interaction_holds
     assert still.positions.shape[0] == p.num_frames + 3 and float((still.positions - anchor.positions[0]).abs().max()) == 0
     # An object without a track of its own is carried by the other objects' tracks, warned.
     from endogsim.errors import DataWarning
-    from endogsim.scene.particles import build_particles, gaussian_surfaces
+    from endogsim.scene.particles import particles_from_scene_gaussians
 
-    filled = build_particles(gaussian_surfaces(p.gaussians, p.deformable_ids), p.spec, p.camera,
-                             p.spec.scenario.identification,
-                             instruments=gaussian_surfaces(p.gaussians, [o.id for o in p.spec.rigid]))
+    filled = particles_from_scene_gaussians(p.gaussians, p.spec, p.camera, p.spec.scenario.identification)
     with pytest.warns(DataWarning, match="no tissue track of its own"):
         (other,) = filled.moving_anchors(p.tracks, np.full(len(p.tracks.index), -1), 0.002)
     torch.testing.assert_close(other.positions, anchor.positions)

@@ -104,18 +104,6 @@ class SurfaceMap:
         return ok & np.isfinite(self.front[i, j])
 
 
-def _image_plane(points: np.ndarray | torch.Tensor, camera: Camera, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points [N, 3] and their image-plane coordinates uv [N, 2] (u = x / z, v = y / z) of world
-    points ``points`` [N, 3] (metres) that must all lie in front of the camera (``what`` names them)."""
-    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise SimulationError(f"{what} must be [N, 3], got shape {pts.shape}")
-    pc = _to_camera(pts, camera)
-    if (pc[:, 2] <= 1e-6).any():
-        raise SimulationError(f"{what} behind the camera cannot be seen along viewing rays")
-    return pc, pc[:, :2] / pc[:, 2:3]
-
-
 def hidden_part(footprint: np.ndarray, hiding: np.ndarray) -> np.ndarray:
     """[Nu, Nv] bool: the cells of ``hiding`` (an instrument's image footprint, bool [Nu, Nv]) that the surface
     whose footprint is ``footprint`` (bool [Nu, Nv]) goes on under.
@@ -125,7 +113,8 @@ def hidden_part(footprint: np.ndarray, hiding: np.ndarray) -> np.ndarray:
     notch would make the tissue around the instrument a border band, held still (the instrument then holds
     and moves nothing). A closing of the footprint as wide as the instrument closes the notch: only cells of
     the instrument's footprint are added, and none beyond the tissue's outline, where the closing of a
-    straight or convex outline adds nothing.
+    straight or convex outline adds nothing (of a ragged one, a cell here and there: `two_tissues`' probe
+    shaft adds 3 particles where it crosses the outline).
     """
     from scipy import ndimage
 
@@ -138,7 +127,7 @@ def hidden_part(footprint: np.ndarray, hiding: np.ndarray) -> np.ndarray:
 
 
 def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: float, closing_cells: int = 2,
-                hidden_by: np.ndarray | torch.Tensor | None = None) -> SurfaceMap:
+                hidden_by: np.ndarray | None = None) -> SurfaceMap:
     """The :class:`SurfaceMap` of surface samples ``points`` [N, 3] (metres, world), on image-plane cells a
     little finer than ``spacing`` at the surface's depth, but never finer than half the samples' own spacing;
     holes up to about ``closing_cells`` are closed, and so are notches that instruments in front cut into the
@@ -147,9 +136,13 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    pc, uv = _image_plane(points, camera, "surface points")
-    if len(pc) < 3:
-        raise SimulationError(f"a surface needs at least 3 samples [N, 3], got {len(pc)}")
+    pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise SimulationError(f"a surface needs at least 3 samples [N, 3], got shape {pts.shape}")
+    pc = _to_camera(pts, camera)
+    if (pc[:, 2] <= 1e-6).any():
+        raise SimulationError("surface points behind the camera cannot be seen along viewing rays")
+    uv = pc[:, :2] / pc[:, 2:3]
     rng = np.linalg.norm(pc, axis=1)
     # A map finer than the samples is a map of dots: with samples more than two cells apart the closing below
     # no longer joins them, and the footprint falls apart into holes whose edges make every lattice point a
@@ -166,8 +159,9 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
     footprint = ndimage.binary_fill_holes(footprint)
     if hidden_by is not None and len(hidden_by):
         hiding = np.zeros(shape, bool)
-        _, huv = _image_plane(hidden_by, camera, "instrument points")
-        hij = np.floor((huv - lo) / du).astype(int)
+        hc = _to_camera(np.asarray(hidden_by, np.float64).reshape(-1, 3), camera)
+        hc = hc[hc[:, 2] > 1e-6]  # an instrument point at or behind the camera hides nothing
+        hij = np.floor((hc[:, :2] / hc[:, 2:3] - lo) / du).astype(int)
         on = (hij >= 0).all(1) & (hij < np.asarray(shape)).all(1)
         hiding[hij[on, 0], hij[on, 1]] = True
         # The instrument's samples lie apart, and its outline and the tissue's need not meet: grown by the
@@ -185,7 +179,7 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
 
 def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thickness: float, spacing: float,
                         origin: np.ndarray | None = None, closing_cells: int = 2,
-                        hidden_by: np.ndarray | torch.Tensor | None = None) -> tuple[FilledSolid, SurfaceMap]:
+                        hidden_by: np.ndarray | None = None) -> tuple[FilledSolid, SurfaceMap]:
     """Fill the slab of ``thickness`` behind the surface sampled by ``points`` with a lattice of ``spacing``.
 
     Args:

@@ -433,7 +433,7 @@ def scene_from_reconstruction(
     from endogsim.io.images import resize_frames
     from endogsim.physics import max_stable_E  # noqa: F401 - imported to fail early without Warp
     from endogsim.recon.model import load_reconstruction
-    from endogsim.scene.particles import build_particles, gaussian_surfaces
+    from endogsim.scene.particles import particles_from_scene_gaussians
     from endogsim.scene.schema import IMAGES_PATTERN, load_scene_spec, scene_spec_from_json
     from endogsim.scene.tracks import TissueTracks, sample_tracks, write_tissue_tracks
 
@@ -501,8 +501,8 @@ def scene_from_reconstruction(
     # Tools: one capsule per instrument, moved by its reconstructed (or the ground truth's) rigid motion.
     spec = scene_spec_from_json(doc, out / "scene.json")
     ident = spec.scenario.identification
-    tissue_particles = build_particles(gaussian_surfaces(g0, [o.id for o in spec.deformable]), spec, rec.camera,
-                                       ident, instruments=gaussian_surfaces(g0, tool_ids)).particles.x.double().numpy()
+    # The tissue particles identification will simulate (load_sim_scene builds the same from gaussians_t0.ply).
+    tissue_particles = particles_from_scene_gaussians(g0, spec, rec.camera, ident).particles.x.double().numpy()
     if gt is None:
         field = (np.ones((cam.height, cam.width), bool) if rec.field_of_view is None
                  else rec.field_of_view.cpu().numpy().astype(bool))

@@ -41,7 +41,7 @@ from endogsim.physics import (
     bind_gaussians,
 )
 from endogsim.scene.discretisation import refine
-from endogsim.scene.particles import build_particles, gaussian_surfaces, scenario_forces, tool_colliders
+from endogsim.scene.particles import particles_from_scene_gaussians, scenario_forces, tool_colliders
 from endogsim.scene.schema import IMAGES_PATTERN, SceneSpec, SimSettings, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
@@ -190,8 +190,7 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     dx = box.size / ident.grid
     # Particles always come from the frame-0 Gaussians and the scenario's description, as on a real video
     # (a benchmark's ground-truth particles are never read: identifying from them would be an inverse crime).
-    filled = build_particles(gaussian_surfaces(g, deformable), spec, camera, ident,
-                             instruments=gaussian_surfaces(g, [o.id for o in spec.rigid]))
+    filled = particles_from_scene_gaussians(g, spec, camera, ident)
     particles = filled.particles
 
     tool_tf = {}

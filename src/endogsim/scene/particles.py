@@ -35,8 +35,8 @@ from endogsim.physics.particles import capsule_collider, grasped_particles
 from endogsim.scene.schema import ObjectBoundary, ScenarioSpec, SceneSpec, SimSettings, ToolCapsule
 from endogsim.scene.tracks import TissueTracks
 
-__all__ = ["SlabConditions", "SceneParticles", "build_particles", "gaussian_surfaces", "one_object_per_place",
-           "scenario_forces", "tool_colliders"]
+__all__ = ["SlabConditions", "SceneParticles", "build_particles", "particles_from_scene_gaussians", "gaussian_surfaces",
+           "one_object_per_place", "scenario_forces", "tool_colliders"]
 
 
 @dataclass
@@ -222,6 +222,15 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
     for oid, slab in slabs.items():
         slab.neighbours = [s for o, s in slabs.items() if o != oid]
     return SceneParticles(Particles.concat(parts), np.concatenate(pinned), slabs, np.concatenate(borders))
+
+
+def particles_from_scene_gaussians(g: Gaussians, spec: SceneSpec, camera: Camera,
+                                   settings: SimSettings) -> SceneParticles:
+    """:func:`build_particles` of a scene's frame-0 Gaussians ``g``, as identification builds them on a real video
+    and on a benchmark alike: the deformable objects' Gaussians are the surfaces filled, the rigid objects'
+    (the instruments) what hides them."""
+    return build_particles(gaussian_surfaces(g, [o.id for o in spec.deformable]), spec, camera, settings,
+                           instruments=gaussian_surfaces(g, [o.id for o in spec.rigid]))
 
 
 def one_object_per_place(solids: dict[int, FilledSolid], origin: np.ndarray, spacing: float) -> dict[int, np.ndarray]:
