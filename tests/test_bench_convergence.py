@@ -12,14 +12,14 @@ from endogsim.bench.convergence import TARGET_RMS_CHANGE, convergence_case, run_
 from endogsim.cli.main import app
 from endogsim.errors import DataError
 
-CASE_KEYS = {"scene", "frames", "factor", "particles", "grid", "substeps", "particle_spacing_mm", "refined_particles",
-             "refined_grid", "refined_substeps", "rms_motion_mm", "rms_motion_default_mm", "rms_change", "converged",
-             "seconds", "refined_seconds"}
+CASE_KEYS = {"scene", "frames", "factor", "refine", "particles", "grid", "substeps", "particle_spacing_mm",
+             "refined_particles", "refined_grid", "refined_substeps", "rms_motion_mm", "rms_motion_default_mm",
+             "rms_change", "converged", "seconds", "refined_seconds"}
 
 
 def _check_case(c: dict, frames: int) -> None:
     assert set(c) == CASE_KEYS
-    assert c["scene"] == "tiny" and c["frames"] == frames
+    assert c["scene"] == "tiny" and c["frames"] == frames and c["refine"] == ["grid", "particles", "substeps"]
     # the refinement: 2x the grid, 8x the particles (up to the outline's rounding), at least 2x the substeps
     assert c["refined_grid"] == 2 * c["grid"] and c["refined_substeps"] >= 2 * c["substeps"]
     assert 6 * c["particles"] < c["refined_particles"] < 10 * c["particles"]
@@ -54,6 +54,25 @@ def test_a_refinement_sequence_gives_the_change_from_each_level_to_the_next(tmp_
         assert r.exit_code == 2 and "levels" in r.output, (bad, r.output)
 
 
+def test_a_part_of_the_discretisation_is_refined_alone(tmp_path):
+    out = tmp_path / "substeps.json"
+    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--frames", "3", "--refine", "substeps",
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    c = res["cases"][0]
+    assert res["settings"]["refine"] == c["refine"] == ["substeps"]
+    # the same grid and particles, twice the substeps: is the motion converged in time?
+    assert (c["refined_grid"], c["refined_particles"]) == (c["grid"], c["particles"])
+    assert c["refined_substeps"] == 2 * c["substeps"]
+    assert math.isfinite(c["rms_change"]) and c["rms_change"] > 0
+    for bad in ("time", ""):
+        r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--refine", bad])
+        assert r.exit_code == 2 and "grid, particles, substeps" in r.output, (bad, r.output)
+    with pytest.raises(DataError, match="every part"):
+        run_bench(["tiny"], levels=[1, 2], refine=("grid",))
+
+
 def test_unknown_scenes_are_refused_before_any_work():
     with pytest.raises(DataError, match="unknown suite scene.*nowhere"):
         run_bench(["tiny", "nowhere"])
@@ -76,3 +95,11 @@ def test_tiny_at_its_default_frames(tiny_default):
                                        "remove this mark once the discretisation converges")
 def test_tiny_meets_the_convergence_target(tiny_default):
     assert tiny_default["rms_change"] <= TARGET_RMS_CHANGE
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 21: at identification's grid, tiny's motion grows with the substeps "
+                                       "(0.42, 0.46, 0.50 mm at 9, 18, 36): the instrument's conditions on grid nodes "
+                                       "act once per substep, so they hold the tissue harder the shorter the substep")
+def test_tiny_is_converged_in_time_at_its_grid():
+    assert convergence_case("tiny", refine=("substeps",))["rms_change"] <= TARGET_RMS_CHANGE

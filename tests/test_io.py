@@ -412,3 +412,10 @@ def test_the_pipeline_calibrates_with_levenberg_marquardt_unless_told_otherwise(
     assert PipelineConfig(identify={"iters": 1}).identify.optimizer == "lm"  # a dict fills in the pipeline's
     assert PipelineConfig(identify={"optimizer": "rprop"}).identify.optimizer == "rprop"
     assert PipelineConfig(identify=IdentifyConfig()).identify.optimizer == "rprop"  # a config is taken as it is
+
+
+def test_the_optimizer_help_of_run_and_validate_names_the_pipelines_default():
+    from endogsim.cli.demo import _PIPELINE_OPTIMIZER_HELP
+    from endogsim.pipeline.run import PIPELINE_OPTIMIZER
+
+    assert f"default {PIPELINE_OPTIMIZER} " in _PIPELINE_OPTIMIZER_HELP

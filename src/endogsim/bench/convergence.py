@@ -10,7 +10,9 @@ Gaussians follow the particles of each run; the figure is
 
 with u(t) = m_g(t) - m_g(0) the motion of Gaussian g over the clip (RMS over Gaussians and frames;
 ``rms_motion_mm`` is the refined run's, ``rms_motion_default_mm`` the default's: a change near 1 with a
-default motion near 0 is a tool that moves the tissue only in the refined run). A
+default motion near 0 is a tool that moves the tissue only in the refined run). ``refine`` takes the
+refinement apart: only the substeps (is the motion converged in time at identification's grid?), only
+the particles, or only the grid (with the substeps its CFL rule then asks for). A
 material fitted with a discretisation that a 2x refinement changes by more than a few percent is a property
 of the discretisation, not of the tissue (DESIGN.md section 10). The target is ``rms_change <=``
 :data:`TARGET_RMS_CHANGE` on every scene; each case says whether it is met (``converged``).
@@ -23,10 +25,12 @@ from dataclasses import replace
 
 import torch
 
-__all__ = ["TARGET_RMS_CHANGE", "motion_of", "convergence_case", "refinement_sequence", "run_bench"]
+__all__ = ["TARGET_RMS_CHANGE", "REFINE_PARTS", "motion_of", "convergence_case", "refinement_sequence", "run_bench"]
 
 #: The issue's target: a 2x refinement changes the motion by at most this (RMS, relative).
 TARGET_RMS_CHANGE = 0.05
+#: What a refinement can refine: the grid, the particle spacing, the substeps per frame.
+REFINE_PARTS = ("grid", "particles", "substeps")
 
 
 def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
@@ -44,14 +48,22 @@ def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
     return means.double(), len(filled.particles), res.substeps
 
 
-def _refined(b, factor: int):
-    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself)."""
-    from endogsim.scene.discretisation import refine
+def _refined(b, factor: int, parts: tuple[str, ...] = REFINE_PARTS):
+    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself), in all of
+    :data:`REFINE_PARTS` (:func:`endogsim.scene.discretisation.refine`) or only in ``parts``."""
+    from endogsim.scene.discretisation import refine, sim_settings
     from endogsim.scene.motion import tool_speed
 
+    s, speed = b.identification, tool_speed(b.tools, b.frame_dt)
     if factor == 1:
-        return b.identification
-    return refine(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor)
+        return s
+    if set(parts) == set(REFINE_PARTS):
+        return refine(s, b.objects, b.box_size, b.frame_dt, speed, factor)
+    grid = s.grid * factor if "grid" in parts else s.grid
+    substeps = s.substeps * factor if "substeps" in parts else s.substeps
+    spacing = s.particle_spacing or b.box_size / s.grid / 2
+    spacing = spacing / factor if "particles" in parts else spacing
+    return sim_settings(b.objects, b.box_size, grid, b.frame_dt, substeps, speed, particle_spacing=spacing)
 
 
 def _rms_change(coarse: torch.Tensor, fine: torch.Tensor) -> float:
@@ -64,20 +76,22 @@ def _rms_mm(m: torch.Tensor) -> float:
     return 1e3 * float((m - m[:1]).square().sum(-1).mean().sqrt())
 
 
-def convergence_case(name: str, frames: int | None = None, factor: int = 2) -> dict:
+def convergence_case(name: str, frames: int | None = None, factor: int = 2,
+                     refine: tuple[str, ...] = REFINE_PARTS) -> dict:
     """The RMS motion change of suite scene ``name`` between identification's discretisation and its
-    ``factor``-times refinement (see the module docstring)."""
+    ``factor``-times refinement of the ``refine`` parts of :data:`REFINE_PARTS` (see the module docstring)."""
     from endogsim.synth.scenes import build_procedural
 
     b = build_procedural(name, seed=0, frames=frames)
-    fine = _refined(b, factor)
+    fine = _refined(b, factor, refine)
     t0 = time.perf_counter()
     coarse, n_coarse, sub_coarse = motion_of(b, b.identification)
     t1 = time.perf_counter()
     refined, n_fine, sub_fine = motion_of(b, fine)
     t2 = time.perf_counter()
     change = _rms_change(coarse, refined)
-    return {"scene": name, "frames": b.frames, "factor": factor, "particles": n_coarse, "grid": b.identification.grid, "substeps": sub_coarse,
+    return {"scene": name, "frames": b.frames, "factor": factor, "refine": list(refine), "particles": n_coarse,
+            "grid": b.identification.grid, "substeps": sub_coarse,
             "particle_spacing_mm": 1e3 * b.identification.particle_spacing,
             "refined_particles": n_fine, "refined_grid": fine.grid, "refined_substeps": sub_fine,
             "rms_motion_mm": _rms_mm(refined), "rms_motion_default_mm": _rms_mm(coarse), "rms_change": change,
@@ -115,13 +129,14 @@ def refinement_sequence(name: str, factors: list[int], frames: int | None = None
 
 
 def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log=None,
-              levels: list[int] | None = None) -> dict:
-    """:func:`convergence_case` for every scene in ``scenes`` (suite names; checked before any work), or with
-    ``levels`` (increasing refinement factors from 1) its :func:`refinement_sequence` instead.
+              levels: list[int] | None = None, refine: tuple[str, ...] = REFINE_PARTS) -> dict:
+    """:func:`convergence_case` for every scene in ``scenes`` (suite names; checked before any work) refining
+    the ``refine`` parts, or with ``levels`` (increasing refinement factors from 1, every part) its
+    :func:`refinement_sequence` instead.
 
     Returns:
         {"cases": [convergence_case(...), ...] or "sequences": [refinement_sequence(...), ...], "settings":
-        {scenes, frames, factor or levels, target_rms_change, seed, generator_revision, push_contact_cells,
+        {scenes, frames, factor and refine, or levels, target_rms_change, seed, generator_revision, push_contact_cells,
         threads}}
     """
     from endogsim.errors import DataError
@@ -133,6 +148,10 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
         raise DataError(f"unknown suite scene(s) {', '.join(unknown)}; choose from {', '.join(suite_scene_names())}")
     if levels is None and factor < 2:
         raise DataError(f"refinement factor {factor} must be >= 2")
+    if not refine or set(refine) - set(REFINE_PARTS):
+        raise DataError(f"refine {', '.join(refine) or 'nothing'}: choose one or more of {', '.join(REFINE_PARTS)}")
+    if levels is not None and set(refine) != set(REFINE_PARTS):
+        raise DataError("a refinement sequence (levels) refines every part; refine one part with a factor instead")
     if levels is not None and (len(levels) < 2 or levels[0] != 1 or any(b <= a for a, b in zip(levels, levels[1:]))):
         raise DataError(f"refinement levels {levels} must start at 1 and increase (e.g. 1,2,3)")
     settings = {"scenes": list(scenes), "frames": frames, "target_rms_change": TARGET_RMS_CHANGE, "seed": 0,
@@ -148,10 +167,10 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
             return (f"rms changes {', '.join(f'{c:.3f}' for c in q['changes'])} "
                     f"({' -> '.join(f'{f}x' for f in levels)}; {sum(q['seconds']):.0f} s)")
     else:
-        key, extra = "cases", {"factor": factor}
+        key, extra = "cases", {"factor": factor, "refine": list(refine)}
 
         def measure(name: str) -> dict:
-            return convergence_case(name, frames, factor)
+            return convergence_case(name, frames, factor, refine)
 
         def describe(c: dict) -> str:
             return (f"rms change {c['rms_change']:.3f} ({c['particles']} particles, grid {c['grid']}; "

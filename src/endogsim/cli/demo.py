@@ -38,9 +38,10 @@ _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed
 
 
 #: ``--optimizer`` of ``run`` and ``validate`` (:data:`endogsim.pipeline.run.PIPELINE_OPTIMIZER`).
-_PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (on both real clips it stops by its tolerance "
-                            "in 4-5 iterations, where rprop, identify's default, takes 8-13 and can run into the "
-                            "time budget): " + OPTIMIZER_HELP)
+#: The default is named here, not imported: the pipeline's module pulls in torch, and the CLI starts without it
+#: (tests/test_io.py checks that the two agree).
+_PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (it stops by its tolerance, where rprop, "
+                            "identify's default, runs on for its iterations): " + OPTIMIZER_HELP)
 
 
 def _identify_config(iters: int | None, optimizer: str | None):
