@@ -99,7 +99,7 @@ def test_tiny_meets_the_convergence_target(tiny_default):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 21: at identification's grid, tiny's motion grows with the substeps "
-                                       "(0.42, 0.46, 0.50 mm at 9, 18, 36): the instrument's conditions on grid nodes "
-                                       "act once per substep, so they hold the tissue harder the shorter the substep")
+                                       "(0.42, 0.46, 0.50 mm at 9, 18, 36; without the probe nothing moves): "
+                                       "docs/IDENTIFICATION.md section 3, stop 58")
 def test_tiny_is_converged_in_time_at_its_grid():
     assert convergence_case("tiny", refine=("substeps",))["rms_change"] <= TARGET_RMS_CHANGE
