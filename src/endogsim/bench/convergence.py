@@ -25,12 +25,12 @@ from dataclasses import replace
 
 import torch
 
+from endogsim.scene.discretisation import REFINE_PARTS
+
 __all__ = ["TARGET_RMS_CHANGE", "REFINE_PARTS", "motion_of", "convergence_case", "refinement_sequence", "run_bench"]
 
 #: The issue's target: a 2x refinement changes the motion by at most this (RMS, relative).
 TARGET_RMS_CHANGE = 0.05
-#: What a refinement can refine: the grid, the particle spacing, the substeps per frame.
-REFINE_PARTS = ("grid", "particles", "substeps")
 
 
 def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
@@ -49,21 +49,15 @@ def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
 
 
 def _refined(b, factor: int, parts: tuple[str, ...] = REFINE_PARTS):
-    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself), in all of
-    :data:`REFINE_PARTS` (:func:`endogsim.scene.discretisation.refine`) or only in ``parts``."""
-    from endogsim.scene.discretisation import refine, sim_settings
+    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself) in ``parts``
+    (:func:`endogsim.scene.discretisation.refine`)."""
+    from endogsim.scene.discretisation import refine
     from endogsim.scene.motion import tool_speed
 
-    s, speed = b.identification, tool_speed(b.tools, b.frame_dt)
     if factor == 1:
-        return s
-    if set(parts) == set(REFINE_PARTS):
-        return refine(s, b.objects, b.box_size, b.frame_dt, speed, factor)
-    grid = s.grid * factor if "grid" in parts else s.grid
-    substeps = s.substeps * factor if "substeps" in parts else s.substeps
-    spacing = s.particle_spacing or b.box_size / s.grid / 2
-    spacing = spacing / factor if "particles" in parts else spacing
-    return sim_settings(b.objects, b.box_size, grid, b.frame_dt, substeps, speed, particle_spacing=spacing)
+        return b.identification
+    return refine(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor,
+                  parts=parts)
 
 
 def _rms_change(coarse: torch.Tensor, fine: torch.Tensor) -> float:

@@ -22,12 +22,14 @@ from endogsim.physics.config import MPMConfig
 from endogsim.physics.stability import p_wave_speed, plan_substeps
 from endogsim.scene.schema import SceneObject, SimSettings
 
-__all__ = ["CELLS_ACROSS_THICKNESS", "MAX_GRID", "plan_discretisation", "refine", "sim_settings"]
+__all__ = ["CELLS_ACROSS_THICKNESS", "MAX_GRID", "REFINE_PARTS", "plan_discretisation", "refine", "sim_settings"]
 
 #: Grid cells across the thinnest tissue's thickness (measured by ``endogsim bench convergence``).
 CELLS_ACROSS_THICKNESS = 3
 #: The finest grid a plan may ask for (memory: 3 arrays of grid^3 per taped substep).
 MAX_GRID = 256
+#: What :func:`refine` can refine: the grid, the particle spacing, the substeps per frame.
+REFINE_PARTS = ("grid", "particles", "substeps")
 
 
 def sim_settings(objects: Sequence[SceneObject], box_size: float, grid: int, frame_dt: float, substeps: int,
@@ -75,15 +77,18 @@ def plan_discretisation(objects: Sequence[SceneObject], box_size: float, thickne
 
 
 def refine(settings: SimSettings, objects: Sequence[SceneObject], box_size: float, frame_dt: float,
-           max_speed: float = 0.0, factor: float = 2, cfl_number: float = 0.5) -> SimSettings:
+           max_speed: float = 0.0, factor: float = 2, cfl_number: float = 0.5,
+           parts: Sequence[str] = REFINE_PARTS) -> SimSettings:
     """``settings`` refined by ``factor``: the grid times ``factor`` (rounded), the particle spacing divided by
     the grid's ratio (the same particles per cell), and at least that ratio times the substeps (more if the
     new cell's CFL rule asks for them). A ``factor`` below 1 coarsens (identification's discretisation-error
-    estimate, :mod:`endogsim.identify.uncertainty`)."""
+    estimate, :mod:`endogsim.identify.uncertainty`). ``parts``: refine only these of :data:`REFINE_PARTS`
+    (``endogsim bench convergence --refine``); a grid refined alone takes the substeps its CFL rule asks for."""
     if not factor > 0:
         raise DataError(f"refinement factor {factor} must be > 0")
-    grid = max(1, round(settings.grid * factor))
-    ratio = grid / settings.grid
+    ratio = max(1, round(settings.grid * factor)) / settings.grid
+    grid = round(settings.grid * ratio) if "grid" in parts else settings.grid
+    substeps = max(1, math.ceil(settings.substeps * ratio - 1e-9)) if "substeps" in parts else settings.substeps
     spacing = settings.particle_spacing or box_size / settings.grid / 2
-    return sim_settings(objects, box_size, grid, frame_dt, max(1, math.ceil(settings.substeps * ratio - 1e-9)),
-                        max_speed, cfl_number, particle_spacing=spacing / ratio)
+    return sim_settings(objects, box_size, grid, frame_dt, substeps, max_speed, cfl_number,
+                        particle_spacing=spacing / ratio if "particles" in parts else spacing)
