@@ -202,3 +202,18 @@ def test_cli_prints_the_tables(scenes_dir, tmp_path):
     assert r.exit_code == 0, r.output
     assert "Table 2" in r.output and "Table 3" in r.output and "ablation" in r.output and "per object" in r.output
     assert json.loads(out.read_text())["settings"]["scenes"] == ["tiny"]
+
+
+def test_the_suite_refuses_to_identify_as_finely_as_its_ground_truth(scenes_dir, tmp_path):
+    """``--refine`` at the ground truth's factor (2) would fit the truth at its own discretisation: refused
+    before any scene is made; the CLI says so in one line."""
+    from typer.testing import CliRunner
+
+    from endogsim.bench.suite import run_suite
+    from endogsim.cli.main import app
+
+    with pytest.raises(EndoGSimError, match="inverse crime"):
+        run_suite(["tiny"], scenes_dir, tmp_path / "w", refine=2)
+    r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--refine", "2.5", "--scenes-dir",
+                                 str(scenes_dir), "--work-dir", str(tmp_path / "w")])
+    assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()

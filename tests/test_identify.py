@@ -91,6 +91,43 @@ def test_a_coarsened_scene_is_the_same_scene_on_a_coarser_grid(problem):
     assert fine.particle_spacing == pytest.approx(sc.spacing(sc.identification) / 2)
 
 
+def test_a_refined_scene_is_the_same_scene_finer_and_its_coarse_estimate_follows_it(tiny, problem):
+    """``refine``: identification at a finer discretisation than the scene's default (grid x F, spacing / F,
+    substeps x F). The discretisation-error estimate coarsens the refined scene, not the default one."""
+    fine = load_sim_scene(tiny, refine=1.5)
+    base = problem.settings
+    assert fine.settings.grid == fine.mpm.grid_res == round(1.5 * base.grid)
+    ratio = fine.settings.grid / base.grid
+    assert fine.settings.particle_spacing == pytest.approx(base.particle_spacing / ratio)
+    assert fine.mpm.substeps_per_frame >= math.ceil(ratio * base.substeps - 1e-9)
+    n, n_fine = len(problem.particles), len(fine.particles)
+    assert 0.7 * ratio ** 3 < n_fine / n < 1.4 * ratio ** 3
+    assert torch.equal(fine.gaussians.means, problem.gaussians.means)
+    assert coarsened(fine, 0.7).settings.grid == round(0.7 * fine.settings.grid)  # relative to the refined grid
+    with pytest.raises(DataError, match="not both"):
+        load_sim_scene(tiny, settings=base, refine=1.5)
+    with pytest.raises(DataError, match="above the 256"):
+        load_sim_scene(tiny, refine=10)
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(MaterialError, match="refine"):
+            IdentifyConfig(refine=bad)
+
+
+def test_identification_at_a_refined_discretisation_says_so_and_refuses_a_scene_loaded_otherwise(tiny, problem,
+                                                                                                  tmp_path):
+    from endogsim.identify import run_identify
+
+    cfg = fast_config(iters=0, refine=1.5)
+    m = run_identify(tiny, tmp_path / "fine", init="prior", config=cfg, video=False)
+    d = m["discretisation"]
+    assert d["refine"] == 1.5 and d["grid"] == round(1.5 * problem.settings.grid) and d["particles"] > len(problem.particles)
+    assert "1.5x the scene's identification discretisation" in (tmp_path / "fine" / "summary.txt").read_text()
+    base = run_identify(tiny, tmp_path / "base", init="prior", config=fast_config(iters=0), video=False, problem=problem)
+    assert base["discretisation"]["refine"] == 1.0 and base["discretisation"]["grid"] == problem.settings.grid
+    with pytest.raises(DataError, match="refined 1.5x"):
+        run_identify(tiny, tmp_path / "mixed", init="prior", config=cfg, video=False, problem=problem)
+
+
 def test_capsule_collider_points_fill_the_capsule():
     tip, end, r, dx = np.array([0.0, 0.0, 0.0]), np.array([0.02, 0.0, 0.0]), 0.003, 0.002
     pts, rho = capsule_collider_points(tip, end, r, dx)

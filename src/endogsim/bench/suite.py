@@ -47,6 +47,8 @@ from endogsim.errors import EndoGSimError
 __all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects",
            "DEFAULT_ITERS", "RUN_KEYS"]
 
+#: Why identification must stay coarser than a ground truth (``--refine``).
+INVERSE_CRIME = "a fit at the truth's own discretisation hides the simulator's error (an inverse crime)"
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
 
@@ -73,7 +75,7 @@ def _default_scenes() -> list[str]:
 def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = DEFAULT_ITERS,
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
-              time_budget: float | None = None, optimizer: str = "rprop") -> dict:
+              time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
 
     Args:
@@ -91,6 +93,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         time_budget: identification's safety stop in seconds (None: none; the module docstring says why).
         optimizer: identification's optimiser (``IdentifyConfig.optimizer``; the default's figures are the
             suite's).
+        refine: identify at the scene's identification discretisation refined by this factor
+            (``IdentifyConfig.refine``); it must stay coarser than the ground truth's simulation.
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
@@ -108,7 +112,11 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
-    problem = load_sim_scene(folder)
+    problem = load_sim_scene(folder, refine=refine)
+    if problem.settings.grid >= problem.spec.scenario.ground_truth.grid:
+        raise EndoGSimError(f"scene {name}: identification refined {refine:g}x (grid {problem.settings.grid}) is as "
+                            f"fine as its ground truth's simulation (grid {problem.spec.scenario.ground_truth.grid}): "
+                            + INVERSE_CRIME)
     net = None
     if fid_weights:
         from endogsim.evaluate.fid import load_inception
@@ -122,7 +130,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     done = {}
     for key, init, on, glob in plan:
         cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
-                             intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer)
+                             intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer,
+                             refine=refine)
         t_run = time.perf_counter()
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
@@ -250,7 +259,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               work_dir: str | os.PathLike = "bench_suite_runs", iters: int | None = None, quick: bool = False,
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
-              time_budget: float | None = None, optimizer: str = "rprop", log=print) -> dict:
+              time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
+              log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -265,11 +275,13 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         time_budget: each identification's safety stop in seconds (default None: none).
         optimizer: identification's optimiser (default "rprop", the suite's figures; "lm": docs/IDENTIFICATION.md
             section 4).
+        refine: identify at each scene's identification discretisation refined by this factor (default 1;
+            below the ground truth's 2).
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
     """
-    from endogsim.synth.suite import suite_scene_names
+    from endogsim.synth.suite import scene_spec, suite_scene_names
 
     t0 = time.perf_counter()
     scenes = list(scenes) if scenes else (["tiny"] if quick else _default_scenes())
@@ -284,12 +296,16 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
                                 "(the full method, whose run every table starts from)")
     from endogsim.identify.config import IdentifyConfig
 
-    IdentifyConfig(optimizer=optimizer)  # an unknown optimiser is refused (MaterialError) before any scene is made
+    IdentifyConfig(optimizer=optimizer, refine=refine)  # bad options are refused (MaterialError) before any scene
+    as_fine = [s for s in scenes if refine >= scene_spec(s)["ground_truth_refine"]]
+    if as_fine:
+        raise EndoGSimError(f"--refine {refine:g} identifies {', '.join(as_fine)} at least as finely as their ground "
+                            f"truth was simulated: {INVERSE_CRIME}; use a factor below the scenes' ground_truth_refine")
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
                fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
-               optimizer=optimizer)
+               optimizer=optimizer, refine=refine)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -307,7 +323,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
-                         "time_budget": time_budget, "optimizer": optimizer},
+                         "time_budget": time_budget, "optimizer": optimizer, "refine": refine},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 

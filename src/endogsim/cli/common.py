@@ -33,6 +33,10 @@ F = TypeVar("F", bound=Callable[..., Any])
 #: ``--optimizer`` of ``identify``, ``run`` and ``validate`` (:attr:`endogsim.identify.IdentifyConfig.optimizer`).
 OPTIMIZER_HELP = ("rprop (steps grow while the gradient keeps its direction) | adam | lm (Levenberg-Marquardt, forward "
                   "simulations side by side, no adjoint).")
+#: ``--refine`` of ``identify``, ``run``, ``validate`` and ``simulate``
+#: (:attr:`endogsim.identify.IdentifyConfig.refine`).
+REFINE_HELP = ("Simulate at the scene's identification discretisation refined by this factor: grid x F, particle "
+               "spacing / F, substeps x F; nearer converged, up to F^4 the time and F^3 the memory (1: the default).")
 
 
 def user_errors(func: F) -> F:

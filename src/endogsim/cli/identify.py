@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import OPTIMIZER_HELP, output_folder, user_errors
+from endogsim.cli.common import OPTIMIZER_HELP, REFINE_HELP, output_folder, user_errors
 from endogsim.identify.config import IdentifyConfig
 from endogsim.priors.flow import FlowConfig
 
@@ -47,6 +47,7 @@ def register(app: typer.Typer) -> None:
                                             help="The discretisation error in each 90% interval: the optimum found "
                                                  "again on a grid this fraction as fine (0: not measured, the "
                                                  "interval holds the video's noise alone)."),
+        refine: float = typer.Option(_DEFAULT.refine, "--refine", help=REFINE_HELP),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
@@ -62,7 +63,7 @@ def register(app: typer.Typer) -> None:
                              optimizer=optimizer,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
                              flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget,
-                             coarse_factor=coarse_factor or None)
+                             coarse_factor=coarse_factor or None, refine=refine)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
             trials: list = []  # the interval trials' task, added when the iterations end (their count is open)

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import output_folder, user_errors
+from endogsim.cli.common import REFINE_HELP, output_folder, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -28,6 +28,7 @@ def register(app: typer.Typer) -> None:
         fps: float = typer.Option(10.0, "--fps", help="Video frame rate."),
         no_ply: bool = typer.Option(False, "--no-ply", help="Skip the PLY sequence."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator)."),
+        refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
     ) -> None:
         """Simulate a new interaction (tool trajectory, force on a region, or grasp-and-pull) on a scene with
         given materials; writes simulation.mp4, frames/*.png, ply/*.ply and summary.json."""
@@ -39,7 +40,8 @@ def register(app: typer.Typer) -> None:
         if frames is not None:  # validated like a file's value (2 to 400 frames)
             inter = load_interaction({**inter.model_dump(), "frames": frames}, where=f"--frames {frames}")
         with console.status(f"simulating {inter.name} ..."):
-            s = simulate_interaction(scene, inter, materials, out, fps=fps, write_ply_sequence=not no_ply, device=device)
+            s = simulate_interaction(scene, inter, materials, out, fps=fps, write_ply_sequence=not no_ply,
+                                     device=device, refine=refine)
         print_table(f"{inter.name} on {s['scene']} ({s['frames']} frames, {s['substeps']} substeps/frame)",
                     ["object", "E (Pa)", "nu", "source", "max displacement (mm)", "at last frame (mm)"],
                     [(n, v["E"], f"{v['nu']:.3f}", v["source"], s["displacement"][n]["max_mm"],

@@ -182,6 +182,14 @@ def settling_text(settle: dict) -> str:
             f"{100 * settle['tolerance_cells']:.0f}%): {verdict}")
 
 
+def simulated_at_text(d: dict) -> str:
+    """'grid 49 (2.24 mm cells), 24,505 particles, at least 8 substeps a frame (1x the scene's identification
+    discretisation)' from metrics.json's ``discretisation`` record
+    (:func:`endogsim.identify.report.discretisation_record`)."""
+    return (f"grid {d['grid']} ({d['cell_m'] * 1e3:.2f} mm cells), {d['particles']:,} particles, at least "
+            f"{d['substeps']} substeps a frame ({d['refine']:g}x the scene's identification discretisation)")
+
+
 def discretisation_text(parameter: str, disc: dict) -> str:
     """'+-0.63 decades (the optimum on a grid 1.42x coarser: 6474 Pa, -0.0888 decades)' from the dict of a
     :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu")."""
@@ -296,7 +304,9 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
              f'<p class="note">run folder {_e(run)}; scene folder {_e(metrics.get("folder", "?"))}; '
              f'init {_e(metrics.get("init"))}; loss {_e(metrics.get("loss"))}; '
              f'{_e(metrics.get("iterations"))} iterations ({_e(metrics.get("stopped"))}), '
-             f'{_fmt(metrics.get("seconds"), 3)} s</p>']
+             f'{_fmt(metrics.get("seconds"), 3)} s'
+             + (f'; simulated at {_e(simulated_at_text(metrics["discretisation"]))}'
+                if isinstance(metrics.get("discretisation"), dict) else "") + '</p>']
 
     # Videos side by side.
     vids = []

@@ -92,6 +92,12 @@ class IdentifyConfig:
             the interval (:func:`~endogsim.identify.uncertainty.discretisation_error`; a few forward
             simulations per parameter, each about a third of the cost of one at full resolution). None: the
             interval holds the loss's frame-to-frame noise alone.
+        refine: simulate at the scene's identification discretisation refined by this factor (grid x
+            ``refine``, particle spacing / ``refine``, substeps x ``refine``;
+            :func:`~endogsim.scene.folder.load_sim_scene`). The default discretisation is not converged
+            (docs/IDENTIFICATION.md section 3), and its error moves the optimum; a finer one moves it less, at
+            up to ``refine``^4 the cost of an iteration and ``refine``^3 its memory. ``coarse_factor`` is
+            relative to it.
         render_scale: render (and compare) at this fraction of the image size; flows scale with it. Rendering
             dominates an iteration on a CPU, and 0.5 quarters it. The rasteriser's fixed screen-space
             low-pass makes reduced-scale renders differ from the area-downsampled observations by a
@@ -135,6 +141,7 @@ class IdentifyConfig:
     optimize_nu: bool = True
     intervals: bool = True
     coarse_factor: float | None = 0.7
+    refine: float = 1.0
     render_scale: float = 0.5
     flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))
     frames: int | None = None
@@ -168,6 +175,8 @@ class IdentifyConfig:
             raise MaterialError(f"time_budget = {self.time_budget} s must be > 0 (or None)")
         if self.coarse_factor is not None and not 0 < self.coarse_factor < 1:
             raise MaterialError(f"coarse_factor = {self.coarse_factor} must lie in (0, 1) (or None: not measured)")
+        if not (self.refine > 0 and math.isfinite(self.refine)):
+            raise MaterialError(f"refine = {self.refine} must be a finite factor > 0")
         if self.frame_stride is not None and self.frame_stride < 1:
             raise MaterialError(f"frame_stride = {self.frame_stride} must be >= 1 (or None: automatic)")
         if self.flow_weight < 0 or self.track_weight < 0:

@@ -277,6 +277,8 @@ def _stored_signature(old: dict | None, run_dir: Path) -> dict:
         return {}
     if Path(str(old.get("scene", ""))).is_absolute():
         old = {**old, "scene": _scene_name(old["scene"], run_dir)}
+    if isinstance(old.get("config"), dict) and "refine" not in old["config"]:  # before refine: the default's
+        old = {**old, "config": {**old["config"], "refine": 1.0}}
     return old
 
 

@@ -30,7 +30,7 @@ from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
-from endogsim.evaluate.report_html import discretisation_text, settling_text
+from endogsim.evaluate.report_html import discretisation_text, settling_text, simulated_at_text
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import observed_flow as estimate_observed_flow
 from endogsim.identify.optimize import IdentifyResult
@@ -114,6 +114,15 @@ def flow_error_map(problem: SimScene, flow: np.ndarray, reference: np.ndarray | 
     and no score counts it (EPE is over tissue pixels)."""
     err = np.linalg.norm(flow - (np.zeros_like(flow) if reference is None else reference), axis=-1)
     return in_field_of_view(problem, torch.from_numpy(err)[..., None])[..., 0].numpy()
+
+
+def discretisation_record(problem: SimScene, refine: float) -> dict:
+    """metrics.json's ``discretisation``: what identification simulated at. {"refine" (the factor on the
+    scene's identification discretisation), "grid" (cells per edge of the sim box), "cell_m" (metres),
+    "particle_spacing_m", "particles", "substeps" (per frame, the least; stiffer trial materials take more)}."""
+    s = problem.settings
+    return {"refine": float(refine), "grid": int(s.grid), "cell_m": problem.scenario.box.size / s.grid,
+            "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps)}
 
 
 def settling_record(problem: SimScene, settling_left: float) -> dict:
@@ -213,6 +222,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
+        "discretisation": discretisation_record(problem, config.refine),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
                       for r in result.field.records},
@@ -243,7 +253,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
              f"{'global material' if config.global_material else 'object-wise material field'}; "
              f"{len(range(0, problem.num_frames, stride))} of {problem.num_frames} frames compared (stride {stride})",
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
-             f"{result.seconds:.1f} s"]
+             f"{result.seconds:.1f} s",
+             f"simulated at {simulated_at_text(metrics['discretisation'])}"]
     for r in result.field.records:
         init = result.init_field[r.object_id]
         kind = "rigid (frozen)" if r.rigid else f"{r.source}; from E {init.E:.4g} Pa, nu {init.nu:.3f}"

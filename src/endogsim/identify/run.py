@@ -14,7 +14,7 @@ from endogsim.identify.report import evaluate_field, reference_observed_flow, wr
 from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.materials.init import BACKENDS
-from endogsim.scene.folder import SimScene, load_sim_scene
+from endogsim.scene.folder import SimScene, identification_settings, load_sim_scene
 
 __all__ = ["initial_field", "check_init", "check_field_objects", "run_identify", "INIT_CHOICES"]
 
@@ -77,13 +77,18 @@ def run_identify(
             :func:`~endogsim.identify.uncertainty.parameter_intervals`; called from worker threads).
         video: write comparison.mp4.
         evaluate_init: also score the initial materials (metrics["init_metrics"]).
-        problem: an already loaded problem for ``scene`` (saves the loading).
+        problem: an already loaded problem for ``scene`` at ``config.refine`` (saves the loading).
     """
     cfg = config or IdentifyConfig()
     out = Path(out)
     with run_folder(out, "identify"):
         _check_resumable_state(out, resume)
-        pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device)
+        pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device, refine=cfg.refine)
+        want = identification_settings(pb.spec, cfg.refine)
+        if (pb.settings.grid, pb.settings.substeps, pb.settings.particle_spacing) != (
+                want.grid, want.substeps, want.particle_spacing):
+            raise DataError(f"{pb.folder}: the scene was loaded at {pb.settings}, not at the identification "
+                            f"discretisation refined {cfg.refine:g}x that the configuration asks for")
         fld, strict = initial_field(pb, init)
         check_field_objects(pb, fld, init)
         # The identified field is evaluated while the intervals' last trials run, where they run side by side.

@@ -267,6 +267,7 @@ def simulate_interaction(
     write_ply_sequence: bool = True,
     device: str = "cpu",
     progress=None,
+    refine: float = 1.0,
 ) -> dict:
     """Simulate ``interaction`` on ``scene`` with ``materials`` and write the outputs (module docstring).
 
@@ -280,6 +281,8 @@ def simulate_interaction(
         write_ply_sequence: write ``ply/frame_%04d.ply``.
         device: simulator device.
         progress: optional callback(stage: str, done: int, total: int).
+        refine: simulate at the scene's identification discretisation refined by this factor (the one the
+            materials were identified at: ``IdentifyConfig.refine``).
     Returns:
         the summary dict (also ``out/summary.json``).
     Raises:
@@ -294,7 +297,7 @@ def simulate_interaction(
     folder, default_mats = resolve_scene(scene)
     if out.resolve() in (Path(folder).resolve(), Path(scene).resolve()):
         raise DataError(f"{out}: --out is the scene (or run) folder itself; name a new folder for the simulation")
-    base = load_sim_scene(folder, device=device)
+    base = load_sim_scene(folder, device=device, refine=refine)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
     with run_folder(out, "simulate"):

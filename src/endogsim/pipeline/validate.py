@@ -265,7 +265,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
             from endogsim.pipeline.scene_from_recon import scene_from_reconstruction
 
             scene_from_reconstruction(recon_dir, data, out / "scene", scenario=cfg.pipeline.scenario)
-        scene = load_sim_scene(out / "scene", device=cfg.pipeline.identify.device)
+        scene = load_sim_scene(out / "scene", device=cfg.pipeline.identify.device, refine=cfg.pipeline.identify.refine)
         T = scene.num_frames
         T_train = split_frames(T, cfg.train_fraction)
         log(f"calibrating on frames 0..{T_train - 1} of {T}")

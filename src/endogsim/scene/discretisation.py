@@ -88,6 +88,9 @@ def refine(settings: SimSettings, objects: Sequence[SceneObject], box_size: floa
         raise DataError(f"refinement factor {factor} must be > 0")
     ratio = max(1, round(settings.grid * factor)) / settings.grid
     grid = round(settings.grid * ratio) if "grid" in parts else settings.grid
+    if grid > MAX_GRID:
+        raise DataError(f"grid {settings.grid} refined {factor:g}x is {grid}^3, above the {MAX_GRID}^3 the simulator "
+                        "allows: use a smaller factor")
     substeps = max(1, math.ceil(settings.substeps * ratio - 1e-9)) if "substeps" in parts else settings.substeps
     spacing = settings.particle_spacing or box_size / settings.grid / 2
     return sim_settings(objects, box_size, grid, frame_dt, substeps, max_speed, cfl_number,

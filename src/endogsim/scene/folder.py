@@ -45,7 +45,7 @@ from endogsim.scene.particles import particles_from_scene_gaussians, scenario_fo
 from endogsim.scene.schema import IMAGES_PATTERN, SceneSpec, SimSettings, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
-__all__ = ["SimScene", "coarsened", "load_sim_scene", "read_observations"]
+__all__ = ["SimScene", "coarsened", "identification_settings", "load_sim_scene", "read_observations"]
 
 
 @dataclass
@@ -64,6 +64,8 @@ class SimScene:
         particles: the simulated particles (deformable objects only).
         scenario: sim box, gravity, anchors (pinned particles), tool colliders.
         mpm: the identification discretisation (grid, substeps, dt).
+        settings: the discretisation the scene was read at (grid, particle spacing, substeps): the scenario's
+            identification settings, refined by the factor given to :func:`load_sim_scene`.
         binding: how each Gaussian follows its k nearest particles.
         tool_transforms: {object id: [T, 4, 4] world rigid transforms per frame} for rigid Gaussians.
         tool_visible: {object id: [T] bool} the frames where the video shows the instrument, for the
@@ -88,6 +90,7 @@ class SimScene:
     particles: Particles
     scenario: Scenario
     mpm: MPMConfig
+    settings: SimSettings
     binding: GaussianBinding
     tool_transforms: dict[int, torch.Tensor]
     gt_flow: np.ndarray | None = None
@@ -148,8 +151,19 @@ def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.nd
     return out_frames, masks, flow, valid
 
 
+def identification_settings(spec: SceneSpec, factor: float = 1.0) -> SimSettings:
+    """The discretisation identification simulates ``spec`` at: the scenario's identification settings (with
+    their particle spacing spelled out), refined by ``factor`` (:func:`endogsim.scene.discretisation.refine`;
+    1: as they are)."""
+    sc = spec.scenario
+    ident = replace(sc.identification, particle_spacing=sc.spacing(sc.identification))
+    if factor == 1:
+        return ident
+    return refine(ident, spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
+
+
 def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu",
-                   settings: SimSettings | None = None) -> SimScene:
+                   settings: SimSettings | None = None, refine: float = 1.0) -> SimScene:
     """Read a scene folder into an :class:`SimScene`.
 
     Args:
@@ -157,7 +171,10 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
         frames: use only the first ``frames`` frames (>= 2); default all.
         device: simulator device ("cpu" or "cuda").
         settings: the discretisation to simulate at (grid, particle spacing, substeps); default the
-            scenario's identification settings (:func:`endogsim.scene.discretisation.refine` makes others).
+            scenario's identification settings refined by ``refine`` (:func:`identification_settings`).
+        refine: with ``settings`` None, the factor on the scenario's identification discretisation (grid x
+            ``refine``, particle spacing / ``refine``, substeps x ``refine``): a finer, costlier simulation that
+            is nearer converged (docs/IDENTIFICATION.md section 3).
     """
     from endogsim.gaussians.ply import read_ply
 
@@ -184,8 +201,10 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
     if not deformable:
         raise DataError(f"{folder}: scene.json has no deformable object to identify")
 
+    if settings is not None and refine != 1:
+        raise DataError(f"{folder}: give either a discretisation or a refinement factor ({refine}), not both")
     sc = spec.scenario
-    ident = sc.identification if settings is None else settings
+    ident = identification_settings(spec, refine) if settings is None else settings
     box = SimBox(tuple(float(v) for v in sc.box_lo), float(sc.box_size))
     dx = box.size / ident.grid
     # Particles always come from the frame-0 Gaussians and the scenario's description, as on a real video
@@ -240,17 +259,16 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
                             f"{camera.width}x{camera.height}")
     return SimScene(folder=folder, spec=spec, labels=labels, frames=obs, object_masks=masks, camera=camera,
                            gaussians=g, deformable_ids=deformable, particles=particles, scenario=scenario, mpm=mpm,
-                           binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
+                           settings=ident, binding=binding, tool_transforms=tool_tf, gt_flow=flow, gt_flow_valid=valid,
                            viewmats=viewmats, tracks=tracks, tool_visible=tool_visible, exposure=exposure,
                            field_of_view=fov)
 
 
 def coarsened(scene: SimScene, factor: float) -> SimScene:
-    """``scene`` read again from its folder at a coarser discretisation: the grid times ``factor`` (< 1),
+    """``scene`` read again from its folder at a coarser discretisation: its grid times ``factor`` (< 1),
     the particle spacing and the substeps scaled with it (:func:`endogsim.scene.discretisation.refine`);
     the same frames, camera, Gaussians and scenario. Identification's discretisation-error estimate
     (:func:`endogsim.identify.uncertainty.discretisation_error`) compares the two."""
     sc = scene.spec.scenario
-    ident = replace(sc.identification, particle_spacing=sc.spacing(sc.identification))
-    settings = refine(ident, scene.spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
+    settings = refine(scene.settings, scene.spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
     return load_sim_scene(scene.folder, scene.num_frames, scene.mpm.device, settings=settings)
