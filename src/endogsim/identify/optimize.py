@@ -678,8 +678,9 @@ def same_simulation(a: MaterialField, b: MaterialField) -> bool:
 
 #: The source of a material the video could not determine: its initial value is kept.
 NOT_IDENTIFIABLE = "prior (not identifiable from this video)"
-#: A parameter bounded by the video on one side only, whose prior lies outside its interval.
-ONE_SIDED = "estimate (bounded on one side by this video, which excludes the prior)"
+#: A parameter bounded by the video on one side only, whose prior lies outside its statistical interval (the
+#: reported one, widened by the discretisation's error, may hold the prior: the label says which excludes it).
+ONE_SIDED = "estimate (bounded on one side by this video, whose noise alone excludes the prior)"
 
 
 def identified_field(init: MaterialField, final: MaterialParams, intervals: list[ParameterInterval]) -> MaterialField:
