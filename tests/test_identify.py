@@ -111,6 +111,11 @@ def test_a_refined_scene_is_the_same_scene_finer_and_its_coarse_estimate_follows
     for bad in (0.0, -1.0, float("inf"), float("nan")):
         with pytest.raises(MaterialError, match="refine"):
             IdentifyConfig(refine=bad)
+    # The search box for E is the same at every refinement: the CFL rule's substeps grow with the grid.
+    nu, rho = torch.tensor([0.49]), torch.tensor([1060.0])
+    box = [float(stable_log10_E_max(pb, nu, rho, IdentifyConfig(E_max=1e9, refine=f)))
+           for pb, f in ((problem, 1.0), (fine, 1.5))]
+    assert box[1] == pytest.approx(box[0], abs=0.01) and box[0] < 9
 
 
 def test_identification_at_a_refined_discretisation_says_so_and_refuses_a_scene_loaded_otherwise(tiny, problem,

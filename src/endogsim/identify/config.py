@@ -79,8 +79,10 @@ class IdentifyConfig:
         E_min, E_max: the search box for E (Pa): soft tissue in vivo is 0.5-20 kPa, tensile tests of organ
             walls reach MPa (``shared/docs/tissue_mechanics.md``); the upper end is also bounded by
             ``max_substeps``.
-        max_substeps: the most substeps per frame a rollout may take: E is kept below the stiffness whose CFL
-            rule would ask for more (an iteration's cost grows with sqrt(E)).
+        max_substeps: the most substeps per frame a rollout may take at the scene's default discretisation: E
+            is kept below the stiffness whose CFL rule would ask for more (an iteration's cost grows with
+            sqrt(E)). Refined ``refine`` times, a rollout may take ``refine`` times as many
+            (:attr:`substep_limit`), so that the search box for E is the same at every refinement.
         stability_margin: keep E below this fraction of that CFL-limited maximum.
         optimize_nu: also optimise nu (else only E moves).
         intervals: after optimising, measure each parameter's 90% interval and whether the video determines
@@ -210,6 +212,12 @@ class IdentifyConfig:
         return {"joint_track": {"render": 1.0, "flow": self.flow_weight, "track": self.track_weight},
                 "joint": {"render": 1.0, "flow": self.flow_weight}, "render": {"render": 1.0},
                 "flow": {"flow": self.flow_weight}, "track": {"track": self.track_weight}}[self.loss]
+
+    @property
+    def substep_limit(self) -> int:
+        """The most substeps per frame at this configuration's discretisation: ``max_substeps`` x ``refine``
+        (the CFL rule's substeps grow with the grid, so the same stiffest material stays in the box)."""
+        return math.ceil(self.max_substeps * self.refine - 1e-9)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

@@ -10,7 +10,8 @@ simulation per parameter, side by side), then damped Gauss-Newton steps until on
 objects are never parameters (frozen by construction).
 
 Search box: E in [E_min, min(E_max, margin * E_cfl(nu))] where E_cfl(nu) is the stiffest material the
-identification discretisation simulates within ``max_substeps`` per frame (:func:`endogsim.physics.max_stable_E`;
+identification discretisation simulates within ``max_substeps`` per frame (times ``refine``:
+``IdentifyConfig.substep_limit``, so the box is the same at every refinement; :func:`endogsim.physics.max_stable_E`;
 the substeps of every rollout follow the CFL rule); nu in the sigmoid's (lo, hi). An initial material
 given explicitly beyond that bound is refused with a message giving it.
 
@@ -192,13 +193,13 @@ class IdentifyResult:
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
     """Upper end of the search box for log10 E per parameter slot: ``E_max``, and the stiffest material the
-    simulation takes within ``max_substeps`` per frame at ``nu`` (the CFL rule; ``stability_margin`` of it).
+    simulation takes within ``substep_limit`` per frame at ``nu`` (the CFL rule; ``stability_margin`` of it).
     ``density`` is the material's; the CFL rule sees it times the scenario's mass scaling, as the simulator does."""
     out = []
     k = problem.scenario.mass_scaling
     for n, rho in zip(nu.detach().double().tolist(), density.detach().double().tolist()):
         e = config.stability_margin * max_stable_E(n, k * rho, problem.mpm, problem.scenario.box.size,
-                                                    substeps=config.max_substeps)
+                                                    substeps=config.substep_limit)
         out.append(math.log10(min(e, config.E_max)))
     return torch.tensor(out, dtype=torch.float64)
 
@@ -214,11 +215,11 @@ def check_stable(problem: SimScene, fld: MaterialField, config: IdentifyConfig) 
         if r.object_id not in problem.deformable_ids:
             continue
         emax = max_stable_E(r.nu, problem.scenario.mass_scaling * r.density, mpm, problem.scenario.box.size,
-                            substeps=config.max_substeps)
+                            substeps=config.substep_limit)
         if r.E > emax:
             raise SimulationError(
                 f"object {r.object_id} ({r.name!r}): E = {r.E:.4g} Pa (nu {r.nu:.3f}) needs more than "
-                f"{config.max_substeps} substeps per frame at the identification discretisation (grid "
+                f"{config.substep_limit} substeps per frame at the identification discretisation (grid "
                 f"{mpm.grid_res}, frames {mpm.frame_dt:.4g} s apart, CFL {mpm.cfl_number}): at most "
                 f"E = {emax:.4g} Pa; start from a softer material or raise max_substeps")
 
