@@ -47,8 +47,6 @@ from endogsim.errors import EndoGSimError
 __all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects",
            "DEFAULT_ITERS", "RUN_KEYS"]
 
-#: Why identification must stay coarser than a ground truth (``--refine``).
-INVERSE_CRIME = "a fit at the truth's own discretisation hides the simulator's error (an inverse crime)"
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
 
@@ -64,6 +62,19 @@ FULL_METHOD = run_key("prior", True)
 #: Iterations of an optimised run. With no time budget (module docstring) a scene's full method then takes
 #: 5-12 minutes on a 2-core CPU (docs/IDENTIFICATION.md section 4 has each scene's seconds per iteration).
 DEFAULT_ITERS = 10
+
+
+def check_coarser_than_ground_truth(scenes: Sequence[str], refine: float) -> None:
+    """Refuse identifying suite ``scenes`` refined ``refine`` times when that is at least as fine as their
+    ground truth was simulated (``ground_truth_refine``): a fit at the truth's own discretisation hides the
+    simulator's error (an inverse crime)."""
+    from endogsim.synth.suite import scene_spec
+
+    as_fine = [s for s in scenes if refine >= scene_spec(s)["ground_truth_refine"]]
+    if as_fine:
+        raise EndoGSimError(f"--refine {refine:g} identifies {', '.join(as_fine)} at least as finely as their ground "
+                            "truth was simulated: a fit at the truth's own discretisation hides the simulator's error "
+                            "(an inverse crime); use a factor below the scenes' ground_truth_refine")
 
 
 def _default_scenes() -> list[str]:
@@ -109,14 +120,11 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
 
     if threads:
         torch.set_num_threads(threads)
+    check_coarser_than_ground_truth([name], refine)
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
     problem = load_sim_scene(folder, refine=refine)
-    if problem.settings.grid >= problem.spec.scenario.ground_truth.grid:
-        raise EndoGSimError(f"scene {name}: identification refined {refine:g}x (grid {problem.settings.grid}) is as "
-                            f"fine as its ground truth's simulation (grid {problem.spec.scenario.ground_truth.grid}): "
-                            + INVERSE_CRIME)
     net = None
     if fid_weights:
         from endogsim.evaluate.fid import load_inception
@@ -281,7 +289,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
     """
-    from endogsim.synth.suite import scene_spec, suite_scene_names
+    from endogsim.synth.suite import suite_scene_names
 
     t0 = time.perf_counter()
     scenes = list(scenes) if scenes else (["tiny"] if quick else _default_scenes())
@@ -297,10 +305,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     from endogsim.identify.config import IdentifyConfig
 
     IdentifyConfig(optimizer=optimizer, refine=refine)  # bad options are refused (MaterialError) before any scene
-    as_fine = [s for s in scenes if refine >= scene_spec(s)["ground_truth_refine"]]
-    if as_fine:
-        raise EndoGSimError(f"--refine {refine:g} identifies {', '.join(as_fine)} at least as finely as their ground "
-                            f"truth was simulated: {INVERSE_CRIME}; use a factor below the scenes' ground_truth_refine")
+    check_coarser_than_ground_truth(scenes, refine)  # every scene's, before the first one's work
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,

@@ -83,12 +83,14 @@ def run_identify(
     out = Path(out)
     with run_folder(out, "identify"):
         _check_resumable_state(out, resume)
-        pb = problem or load_sim_scene(scene, frames=cfg.frames, device=cfg.device, refine=cfg.refine)
-        want = identification_settings(pb.spec, cfg.refine)
-        if (pb.settings.grid, pb.settings.substeps, pb.settings.particle_spacing) != (
-                want.grid, want.substeps, want.particle_spacing):
-            raise DataError(f"{pb.folder}: the scene was loaded at {pb.settings}, not at the identification "
-                            f"discretisation refined {cfg.refine:g}x that the configuration asks for")
+        if problem is None:
+            pb = load_sim_scene(scene, frames=cfg.frames, device=cfg.device, refine=cfg.refine)
+        else:  # a caller's scene must be the one the configuration asks for
+            pb, want = problem, identification_settings(problem.spec, cfg.refine)
+            if (pb.settings.grid, pb.settings.substeps, pb.settings.particle_spacing) != (
+                    want.grid, want.substeps, want.particle_spacing):
+                raise DataError(f"{pb.folder}: the scene was loaded at {pb.settings}, not at the identification "
+                                f"discretisation refined {cfg.refine:g}x that the configuration asks for")
         fld, strict = initial_field(pb, init)
         check_field_objects(pb, fld, init)
         # The identified field is evaluated while the intervals' last trials run, where they run side by side.
