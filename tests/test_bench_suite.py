@@ -217,3 +217,24 @@ def test_the_suite_refuses_to_identify_as_finely_as_its_ground_truth(scenes_dir,
     r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--refine", "2.5", "--scenes-dir",
                                  str(scenes_dir), "--work-dir", str(tmp_path / "w")])
     assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()
+
+
+def test_the_suite_refuses_a_device_it_cannot_use_before_any_scene(tmp_path):
+    """``--device`` names the identification's device; a name that is not one, or CUDA on a machine without
+    it, is a one-line error before any scene is synthesized."""
+    import warp as wp
+    from typer.testing import CliRunner
+
+    from endogsim.bench.suite import run_suite
+    from endogsim.cli.main import app
+    from endogsim.warp_runtime import init_warp
+
+    init_warp()
+    bad = ["gpu"] + ([] if wp.is_cuda_available() else ["cuda"])
+    for device in bad:
+        with pytest.raises(EndoGSimError, match=repr(device)):
+            run_suite(["tiny"], tmp_path / "scenes", tmp_path / "w", device=device)
+        r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--device", device, "--scenes-dir",
+                                     str(tmp_path / "scenes"), "--work-dir", str(tmp_path / "w")])
+        assert r.exit_code == 2 and repr(device) in r.output, r.output
+    assert not (tmp_path / "scenes").exists() and not (tmp_path / "w").exists()

@@ -72,6 +72,30 @@ def test_full_mode_matches_finite_differences(model):
         assert abs(ad - fd) <= 0.01 * abs(fd), (name, ad, fd)
 
 
+@pytest.mark.gpu
+def test_cuda_rollout_and_gradients_equal_the_cpu_ones():
+    """The rollout and its hand-written adjoints run on CUDA as on the CPU: the same loss and gradients
+    (float32 sums in another order: a relative 1e-3)."""
+    import dataclasses
+
+    import warp as wp
+
+    from endogsim.warp_runtime import init_warp
+
+    init_warp()
+    if not wp.is_cuda_available():
+        pytest.skip("CUDA is not available")
+    parts, scen, cfg, *rest = _setup("neo_hookean")
+    results = {}
+    for device in ("cpu", "cuda"):
+        params = _params()
+        loss = _loss((parts, scen, dataclasses.replace(cfg, device=device), *rest), *params, mode="full")
+        loss.backward()
+        results[device] = [float(loss)] + [float(p.grad) for p in params]
+    for name, a, b in zip(("loss", "log10_E", "nu", "density"), results["cpu"], results["cuda"]):
+        assert abs(a - b) <= 1e-3 * abs(a), (name, a, b)
+
+
 def test_frame_mode_matches_finite_differences_of_one_frame():
     # With one simulated frame, frame mode is the exact gradient, and it equals full mode.
     setup = _setup("fixed_corotated")

@@ -240,10 +240,14 @@ def test_chunked_equals_unchunked():
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
 @pytest.mark.parametrize("tile_size", [1, 4, 16])
-def test_warp_backend_matches_torch_values_and_gradients(tile_size, monkeypatch):
-    """The Warp tile compositor against the PyTorch reference: images and the gradients of every input,
-    with features, a background, degenerate and off-screen Gaussians, at several tile sizes."""
+def test_warp_backend_matches_torch_values_and_gradients(tile_size, device, monkeypatch):
+    """The Warp tile compositor against the PyTorch reference (on the CPU): images and the gradients of
+    every input, with features, a background, degenerate and off-screen Gaussians, at several tile sizes,
+    with the Warp kernels on the CPU and on CUDA."""
+    if device == "cuda" and not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
     import endogsim.gaussians.render as render_mod
     from endogsim.gaussians.rasterize_warp import bin_gaussians
 
@@ -257,12 +261,13 @@ def test_warp_backend_matches_torch_values_and_gradients(tile_size, monkeypatch)
     bg = torch.tensor([0.2, 0.3, 0.4])
     wts = torch.randn(45, 61, 9, generator=torch.Generator().manual_seed(10))
     outs = {}
-    for backend in ("torch", "warp"):
-        args = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, feats, bg)]
-        o = rasterize(args[0], args[3], args[4], cam, quats=args[1], scales=args[2], features=args[5],
+    for backend, dev in (("torch", "cpu"), ("warp", device)):
+        args = [t.to(dev).requires_grad_(True) for t in (means, quats, scales, opac, colors, feats, bg)]
+        o = rasterize(args[0], args[3], args[4], cam.to(dev), quats=args[1], scales=args[2], features=args[5],
                       background=args[6], backend=backend)
         img = torch.cat([o.rgb, o.depth[..., None], o.alpha[..., None], o.features, (o.depth * o.alpha)[..., None]], -1)
-        outs[backend] = (img.detach(), torch.autograd.grad((img * wts).sum(), args))
+        grads = torch.autograd.grad((img * wts.to(dev)).sum(), args)
+        outs[backend] = (img.detach().cpu(), [g.cpu() for g in grads])
     (ti, tg), (wi, wg) = outs["torch"], outs["warp"]
     assert (ti - wi).abs().max() < 2e-5
     for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "features", "background"), tg, wg):

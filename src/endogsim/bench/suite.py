@@ -86,7 +86,8 @@ def _default_scenes() -> list[str]:
 def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = DEFAULT_ITERS,
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
-              time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0) -> dict:
+              time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
+              device: str = "cpu") -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
 
     Args:
@@ -106,6 +107,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
             suite's).
         refine: identify at the scene's identification discretisation refined by this factor
             (``IdentifyConfig.refine``); it must stay coarser than the ground truth's simulation.
+        device: identification's simulator and renderer ("cpu" or "cuda"; ``IdentifyConfig.device``). The
+            ground truth is synthesized on the CPU either way.
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
@@ -124,7 +127,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
-    problem = load_sim_scene(folder, refine=refine)
+    problem = load_sim_scene(folder, refine=refine, device=device)
     net = None
     if fid_weights:
         from endogsim.evaluate.fid import load_inception
@@ -139,7 +142,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     for key, init, on, glob in plan:
         cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
                              intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer,
-                             refine=refine)
+                             refine=refine, device=device)
         t_run = time.perf_counter()
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
@@ -268,7 +271,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              log=print) -> dict:
+              device: str = "cpu", log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -285,6 +288,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             section 4).
         refine: identify at each scene's identification discretisation refined by this factor (default 1;
             below the ground truth's 2).
+        device: identification's device ("cpu" or "cuda"): the same computation in another order of
+            floating-point sums.
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
@@ -303,14 +308,17 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             raise EndoGSimError(f"runs {', '.join(runs)}: choose among {', '.join(RUN_KEYS)}, with {FULL_METHOD} "
                                 "(the full method, whose run every table starts from)")
     from endogsim.identify.config import IdentifyConfig
+    from endogsim.physics.engine import resolve_device
 
-    IdentifyConfig(optimizer=optimizer, refine=refine)  # bad options are refused (MaterialError) before any scene
+    # bad options, and a device this machine lacks, are refused before any scene
+    IdentifyConfig(optimizer=optimizer, refine=refine, device=device)
+    resolve_device(device)
     check_coarser_than_ground_truth(scenes, refine)  # every scene's, before the first one's work
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
                fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
-               optimizer=optimizer, refine=refine)
+               optimizer=optimizer, refine=refine, device=device)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -328,7 +336,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
-                         "time_budget": time_budget, "optimizer": optimizer, "refine": refine},
+                         "time_budget": time_budget, "optimizer": optimizer, "refine": refine, "device": device},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 
