@@ -771,9 +771,12 @@ def test_a_single_frame_and_impossible_options_are_refused_before_any_work(tiny,
 def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
     for args, needle in ((["--interaction", "bogus"], "unknown interaction 'bogus'"),
                          (["--materials-backend", "bogus"], "--materials-backend 'bogus' is neither"),
-                         (["--truth", tmp_path / "nope"], "nope: no scene.json")):
+                         (["--truth", tmp_path / "nope"], "nope: no scene.json"),
+                         (["--device", "tpu"], "device 'tpu' is not cpu, cuda or cuda:N")):
         one_line_error(cli("run", tiny, "--out", tmp_path / "run", *args), needle)
         assert not (tmp_path / "run").exists()  # refused before any stage ran
+    one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--device", "tpu"), "device 'tpu'")
+    assert not (tmp_path / "v").exists()
     one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--json", tmp_path), "--json names a folder")
 
 

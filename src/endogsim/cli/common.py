@@ -37,6 +37,9 @@ OPTIMIZER_HELP = ("rprop (steps grow while the gradient keeps its direction) | a
 #: (:attr:`endogsim.identify.IdentifyConfig.refine`).
 REFINE_HELP = ("Simulate at the scene's identification discretisation refined by this factor: grid x F, particle "
                "spacing / F, substeps x F; nearer converged, up to F^4 the time and F^3 the memory (1: the default).")
+#: ``--device`` of ``run`` and ``validate``: where the calibration, the prediction and the simulation run.
+DEVICE_HELP = ("cpu | cuda: the simulator and renderer of the identification (calibration), prediction and simulation "
+               "(the reconstruction picks its own device). The same computation; on CUDA sums run in another order.")
 
 
 def user_errors(func: F) -> F:

@@ -224,7 +224,7 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
         from endogsim.pipeline.simulate import simulate_interaction
 
         summary = simulate_interaction(out / "scene", cfg.interaction, out / "identify" / "materials_identified.json",
-                                       out / "simulate", refine=cfg.identify.refine)
+                                       out / "simulate", device=cfg.identify.device, refine=cfg.identify.refine)
         return {"interaction": cfg.interaction, "summary": summary}
 
     def report_stage() -> dict:
