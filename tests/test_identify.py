@@ -133,6 +133,23 @@ def test_identification_at_a_refined_discretisation_says_so_and_refuses_a_scene_
         run_identify(tiny, tmp_path / "mixed", init="prior", config=cfg, video=False, problem=problem)
 
 
+def test_materials_are_simulated_at_the_discretisation_they_were_identified_at(tiny, tmp_path):
+    """An identified E belongs to the discretisation it was fitted at: the materials file records the factor,
+    and ``simulate`` uses it unless told otherwise (the truth and a prior: 1)."""
+    from endogsim.identify import run_identify
+    from endogsim.pipeline.interaction import load_interaction
+    from endogsim.pipeline.simulate import identified_refine, simulate_interaction
+
+    run_identify(tiny, tmp_path / "fine", init="prior", config=fast_config(iters=0, refine=1.5), video=False)
+    mats = tmp_path / "fine" / "materials_identified.json"
+    assert identified_refine(mats) == 1.5 and identified_refine("truth") == identified_refine("prior") == 1.0
+    poke = load_interaction("poke").model_copy(update={"frames": 2})
+    fine = simulate_interaction(tmp_path / "fine", poke, None, tmp_path / "sim", write_ply_sequence=False)
+    assert fine["discretisation"]["refine"] == 1.5
+    coarse = simulate_interaction(tmp_path / "fine", poke, None, tmp_path / "sim1", write_ply_sequence=False, refine=1)
+    assert coarse["discretisation"]["refine"] == 1.0 and coarse["particles"] < fine["particles"]
+
+
 def test_capsule_collider_points_fill_the_capsule():
     tip, end, r, dx = np.array([0.0, 0.0, 0.0]), np.array([0.02, 0.0, 0.0]), 0.003, 0.002
     pts, rho = capsule_collider_points(tip, end, r, dx)

@@ -772,11 +772,15 @@ def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
     for args, needle in ((["--interaction", "bogus"], "unknown interaction 'bogus'"),
                          (["--materials-backend", "bogus"], "--materials-backend 'bogus' is neither"),
                          (["--truth", tmp_path / "nope"], "nope: no scene.json"),
-                         (["--device", "tpu"], "device 'tpu' is not cpu, cuda or cuda:N")):
+                         (["--device", "tpu"], "device 'tpu' is not cpu, cuda or cuda:N"),
+                         (["--time-budget", "-1"], "time_budget = -1.0 s must be > 0")):
         one_line_error(cli("run", tiny, "--out", tmp_path / "run", *args), needle)
         assert not (tmp_path / "run").exists()  # refused before any stage ran
     one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--device", "tpu"), "device 'tpu'")
     assert not (tmp_path / "v").exists()
+    from endogsim.cli.demo import _identify_config  # --time-budget: the pipeline's 480 s, a number, or 0: none
+
+    assert [_identify_config(None, None, time_budget=b).time_budget for b in (None, 60, 0)] == [480, 60, None]
     one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--json", tmp_path), "--json names a folder")
 
 

@@ -35,8 +35,20 @@ OPTIMIZER_HELP = ("rprop (steps grow while the gradient keeps its direction) | a
                   "simulations side by side, no adjoint).")
 #: ``--refine`` of ``identify``, ``run``, ``validate`` and ``simulate``
 #: (:attr:`endogsim.identify.IdentifyConfig.refine`).
-REFINE_HELP = ("Simulate at the scene's identification discretisation refined by this factor: grid x F, particle "
-               "spacing / F, substeps x F; nearer converged, up to F^4 the time and F^3 the memory (1: the default).")
+REFINE_WHAT = ("Simulate at the scene's identification discretisation refined by this factor: grid x F, particle "
+               "spacing / F, substeps x F; nearer converged, up to F^4 the time and F^3 the memory")
+REFINE_HELP = REFINE_WHAT + " (1: the default)."
+#: ``--time-budget`` of ``identify``, ``run`` and ``validate`` (:attr:`endogsim.identify.IdentifyConfig.time_budget`).
+TIME_BUDGET_HELP = ("Safety stop: no new iteration starts after this many seconds of optimisation (the best so far is "
+                    "kept, and the run says it was stopped; the schedule follows the iterations only); 0: no stop.")
+
+
+def time_budget_option(seconds: float | None) -> dict:
+    """The ``time_budget`` an identification config gets from ``--time-budget`` (0: none; not given: the
+    config's default)."""
+    return {} if seconds is None else {"time_budget": seconds or None}
+
+
 #: ``--device`` of ``run`` and ``validate``: where the calibration, the prediction and the simulation run.
 DEVICE_HELP = ("cpu | cuda: the simulator and renderer of the identification (calibration), prediction and simulation "
                "(the reconstruction picks its own device). The same computation; on CUDA sums run in another order.")

@@ -7,7 +7,15 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import DEVICE_HELP, OPTIMIZER_HELP, REFINE_HELP, output_folder, user_errors
+from endogsim.cli.common import (
+    DEVICE_HELP,
+    OPTIMIZER_HELP,
+    REFINE_HELP,
+    TIME_BUDGET_HELP,
+    output_folder,
+    time_budget_option,
+    user_errors,
+)
 
 
 def _stage_printer():
@@ -44,7 +52,8 @@ _PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (it stops b
                             "identify's default, runs on for its iterations): " + OPTIMIZER_HELP)
 
 
-def _identify_config(iters: int | None, optimizer: str | None, refine: float = 1.0, device: str = "cpu"):
+def _identify_config(iters: int | None, optimizer: str | None, refine: float = 1.0, device: str = "cpu",
+                     time_budget: float | None = None):
     """The identification (calibration) settings of ``run`` and ``validate``: the pipeline's defaults but for the
     options given (an unknown optimiser, a bad factor or a device this machine lacks is refused here, before
     any work)."""
@@ -52,7 +61,7 @@ def _identify_config(iters: int | None, optimizer: str | None, refine: float = 1
     from endogsim.pipeline.run import pipeline_identify
 
     given = (("iters", iters), ("optimizer", optimizer), ("refine", refine), ("device", resolve_device(device)))
-    return pipeline_identify(**{k: v for k, v in given if v is not None})
+    return pipeline_identify(**{k: v for k, v in given if v is not None}, **time_budget_option(time_budget))
 
 
 def register(app: typer.Typer) -> None:
@@ -140,6 +149,8 @@ def register(app: typer.Typer) -> None:
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
         device: str = typer.Option("cpu", "--device", help=DEVICE_HELP),
+        time_budget: Optional[float] = typer.Option(None, "--time-budget", help=TIME_BUDGET_HELP + " Default: "
+                                                    "the pipeline's, 480 s."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         fresh: bool = typer.Option(False, "--fresh", help="Start every stage over (ignore what RUN holds)."),
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
@@ -154,7 +165,7 @@ def register(app: typer.Typer) -> None:
         from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = _identify_config(identify_iters, optimizer, refine, device)
+        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction,
                              scenario=RealScenario(grasping=grasping, border_motion=border_motion,
@@ -179,6 +190,8 @@ def register(app: typer.Typer) -> None:
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
         device: str = typer.Option("cpu", "--device", help=DEVICE_HELP),
+        time_budget: Optional[float] = typer.Option(None, "--time-budget", help=TIME_BUDGET_HELP + " Default: "
+                                                    "the pipeline's, 480 s."),
         resolution_scale: Optional[float] = typer.Option(None, "--resolution-scale", help="Reconstruction image scale."),
         recon_run: Optional[Path] = typer.Option(None, "--recon", help="Use this `endogsim reconstruct` run folder of "
                                                  "DATA instead of reconstructing into OUT/recon."),
@@ -205,7 +218,7 @@ def register(app: typer.Typer) -> None:
         if json_out is not None and json_out.is_dir():
             raise DataError(f"{json_out}: --json names a folder; give the JSON file to write")
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = _identify_config(identify_iters, optimizer, refine, device)
+        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
                              pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
                                                      scenario=RealScenario(grasping=grasping,

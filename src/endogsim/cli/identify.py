@@ -8,7 +8,14 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import OPTIMIZER_HELP, REFINE_HELP, output_folder, user_errors
+from endogsim.cli.common import (
+    OPTIMIZER_HELP,
+    REFINE_HELP,
+    TIME_BUDGET_HELP,
+    output_folder,
+    time_budget_option,
+    user_errors,
+)
 from endogsim.identify.config import IdentifyConfig
 from endogsim.priors.flow import FlowConfig
 
@@ -36,9 +43,7 @@ def register(app: typer.Typer) -> None:
         render_scale: float = typer.Option(_DEFAULT.render_scale, "--render-scale",
                                            help="Render/compare at this fraction of the image size."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
-        time_budget: Optional[float] = typer.Option(_DEFAULT.time_budget, "--time-budget",
-                                                    help="Safety stop after this many seconds of optimisation (best "
-                                                         "kept; the schedule follows --iters only)."),
+        time_budget: Optional[float] = typer.Option(_DEFAULT.time_budget, "--time-budget", help=TIME_BUDGET_HELP),
         frame_stride: Optional[int] = typer.Option(None, "--frame-stride",
                                                    help="Compare every k-th frame (and its flow); the simulation runs "
                                                         "through all. Default: 2 where that compares at least 10 "
@@ -62,7 +67,7 @@ def register(app: typer.Typer) -> None:
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
                              optimizer=optimizer,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
-                             flow=FlowConfig(flow, flow_weights), device=device, time_budget=time_budget,
+                             flow=FlowConfig(flow, flow_weights), device=device, **time_budget_option(time_budget),
                              coarse_factor=coarse_factor or None, refine=refine)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))

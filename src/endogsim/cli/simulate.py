@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from endogsim.cli.common import REFINE_HELP, output_folder, user_errors
+from endogsim.cli.common import REFINE_WHAT, output_folder, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -28,7 +28,8 @@ def register(app: typer.Typer) -> None:
         fps: float = typer.Option(10.0, "--fps", help="Video frame rate."),
         no_ply: bool = typer.Option(False, "--no-ply", help="Skip the PLY sequence."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator)."),
-        refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
+        refine: Optional[float] = typer.Option(None, "--refine", help=REFINE_WHAT + ". Default: the factor the "
+                                               "materials were identified at (1 for the truth or a prior)."),
     ) -> None:
         """Simulate a new interaction (tool trajectory, force on a region, or grasp-and-pull) on a scene with
         given materials; writes simulation.mp4, frames/*.png, ply/*.ply and summary.json."""

@@ -201,7 +201,9 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
 
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    result.field.meta = {**result.field.meta, "identified_from": str(problem.folder), "init": init_name}
+    # "refine": the discretisation the field belongs to; `endogsim simulate` simulates it there by default
+    result.field.meta = {**result.field.meta, "identified_from": str(problem.folder), "init": init_name,
+                         "refine": float(config.refine)}
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)

@@ -5,7 +5,8 @@ identified) materials.
   simulation.mp4              the rendered simulation (full resolution)
   frames/frame_%04d.png       the same frames as PNG
   ply/frame_%04d.ply          the Gaussians of every frame (3DGS layout with object ids)
-  summary.json                scene, interaction (with resolved points), materials, numerics,
+  summary.json                scene, interaction (with resolved points), materials, numerics (``discretisation``:
+                              the factor simulated at, grid, particles, substeps),
                               displacement statistics (mm), whether a grasp's bite held (``grasp_bites``),
                               timings, file list
   interaction.json, materials.json   the inputs actually used
@@ -29,7 +30,7 @@ from endogsim.io.runfolder import run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.pipeline.interaction import Interaction, Located, load_interaction
 
-__all__ = ["resolve_scene", "surface_point", "build_interaction", "simulate_interaction"]
+__all__ = ["resolve_scene", "surface_point", "build_interaction", "identified_refine", "simulate_interaction"]
 
 def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
     """The scene folder and the default materials file for a scene folder or a run folder.
@@ -258,6 +259,20 @@ def _materials(problem, materials: str | Path | MaterialField | None, default: P
     return fld
 
 
+def identified_refine(materials: str | Path | MaterialField | None) -> float:
+    """The factor on the scene's identification discretisation that ``materials`` were identified at: the
+    ``refine`` its identification recorded in the field's meta, 1 for a field without one (the truth, an
+    initialiser, a hand-written file, or one identified before the factor was recorded)."""
+    from endogsim.identify.run import INIT_CHOICES
+
+    if isinstance(materials, MaterialField):
+        return float(materials.meta.get("refine", 1.0))
+    if materials is None or str(materials) == "truth" or str(materials) in INIT_CHOICES \
+            or not Path(materials).is_file():  # a missing file is refused, with its name, where it is read
+        return 1.0
+    return float(MaterialField.load(materials).meta.get("refine", 1.0))
+
+
 def simulate_interaction(
     scene: str | Path,
     interaction: str | Path | dict | Interaction,
@@ -267,7 +282,7 @@ def simulate_interaction(
     write_ply_sequence: bool = True,
     device: str = "cpu",
     progress=None,
-    refine: float = 1.0,
+    refine: float | None = None,
 ) -> dict:
     """Simulate ``interaction`` on ``scene`` with ``materials`` and write the outputs (module docstring).
 
@@ -281,8 +296,9 @@ def simulate_interaction(
         write_ply_sequence: write ``ply/frame_%04d.ply``.
         device: simulator device.
         progress: optional callback(stage: str, done: int, total: int).
-        refine: simulate at the scene's identification discretisation refined by this factor (the one the
-            materials were identified at: ``IdentifyConfig.refine``).
+        refine: simulate at the scene's identification discretisation refined by this factor; None: the
+            factor the materials were identified at (:func:`identified_refine`: an identified E belongs to
+            the discretisation it was fitted at).
     Returns:
         the summary dict (also ``out/summary.json``).
     Raises:
@@ -297,11 +313,14 @@ def simulate_interaction(
     folder, default_mats = resolve_scene(scene)
     if out.resolve() in (Path(folder).resolve(), Path(scene).resolve()):
         raise DataError(f"{out}: --out is the scene (or run) folder itself; name a new folder for the simulation")
+    if refine is None:
+        refine = identified_refine(materials if materials is not None else default_mats)
     base = load_sim_scene(folder, device=device, refine=refine)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
     with run_folder(out, "simulate"):
-        return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress)
+        return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress,
+                                   refine)
 
 
 def _bite_records(problem, positions: torch.Tensor) -> list[dict]:
@@ -314,9 +333,10 @@ def _bite_records(problem, positions: torch.Tensor) -> list[dict]:
 
 
 def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: dict, folder: Path, out: Path,
-                        fps: float, write_ply_sequence: bool, progress) -> dict:
+                        fps: float, write_ply_sequence: bool, progress, refine: float) -> dict:
     """Run the built interaction and write ``out`` (see :func:`simulate_interaction`)."""
     from endogsim.gaussians.ply import write_ply
+    from endogsim.identify.report import discretisation_record
     from endogsim.io.video_writer import write_frames_png, write_video
     from endogsim.physics import simulate
     from endogsim.scene.forward import frame_gaussians, render_sequence
@@ -377,6 +397,7 @@ def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: d
                                "rigid": r.rigid, "source": r.source} for r in fld.records},
         "frames": T, "frame_dt": problem.mpm.frame_dt, "substeps": res.substeps, "dt": res.dt,
         "particles": len(problem.particles), "gaussians": len(problem.gaussians),
+        "discretisation": discretisation_record(problem, refine),
         "displacement": displacement, "grasp_bites": bites,
         "mean_flow_px": float(r.flow.norm(dim=-1).mean()) if r.flow.numel() else 0.0,
         "seconds": {"simulate": t_sim, "render_and_write": t_render},
