@@ -167,6 +167,26 @@ def test_suite_in_process_on_tiny(scenes_dir, tmp_path):
     assert (tmp_path / "runs" / "tiny" / "prior_on" / "metrics.json").is_file()
 
 
+def test_the_suite_resumes_from_the_scenes_it_has_done(scenes_dir, tmp_path, monkeypatch):
+    """A scene's record is reused by a run with the same settings, scene and code, and made again otherwise
+    (other settings, ``fresh``)."""
+    import endogsim.identify
+
+    res = run_suite(["tiny"], scenes_dir, tmp_path / "w", runs=["prior_on"], **SMALL, log=lambda *a: None)
+    assert res["scenes"]["tiny"]["reused"] is False and (tmp_path / "w" / "tiny" / "scene_result.json").is_file()
+    real, calls = endogsim.identify.run_identify, []
+    monkeypatch.setattr(endogsim.identify, "run_identify", lambda *a, **k: calls.append(1) or real(*a, **k))
+    lines = []
+    again = run_suite(["tiny"], scenes_dir, tmp_path / "w", runs=["prior_on"], **SMALL, log=lines.append)
+    assert not calls and again["scenes"]["tiny"]["reused"] is True and "its stored record" in lines[-1]
+    assert again["scenes"]["tiny"]["runs"] == res["scenes"]["tiny"]["runs"] and again["tables"] == res["tables"]
+    run_suite(["tiny"], scenes_dir, tmp_path / "w", runs=["prior_on"], **SMALL, fresh=True, log=lambda *a: None)
+    assert len(calls) == 1
+    other = run_suite(["tiny"], scenes_dir, tmp_path / "w", runs=["prior_off", "prior_on"], **SMALL,
+                      log=lambda *a: None)
+    assert len(calls) == 3 and other["scenes"]["tiny"]["reused"] is False
+
+
 def test_the_suite_runs_what_it_is_asked_and_no_clock_cuts_it(scenes_dir, tmp_path):
     """``--runs prior_on`` does the full method alone; by default no time budget reaches identification (the
     figures must not follow the machine's speed), and ``--time-budget`` does reach it."""

@@ -31,10 +31,16 @@ runs it cut. ``--runs`` measures a subset of the runs (the full method alone: ``
 
 ``--ray`` runs :func:`run_scene` for the scenes in parallel as Ray tasks (one CPU each), on a local cluster
 started for the run or on ``--ray-address ADDRESS``; without it they run one after the other here.
+
+A suite takes about 40 minutes on a 2-core CPU (hours at ``--refine 1.5``), so it resumes: each scene's record
+is written to ``WORK/NAME/scene_result.json`` when the scene is done, and a later run into the same work folder
+reuses it when everything the record depends on is the same (the settings, the synthesized scene's files and
+this package's code); ``--fresh`` runs every scene again.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -43,6 +49,8 @@ from typing import Sequence
 
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.errors import EndoGSimError
+from endogsim.io.atomic import write_json_atomic
+from endogsim.io.runfolder import code_digest, json_digest, tree_digest
 
 __all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects",
            "DEFAULT_ITERS", "RUN_KEYS"]
@@ -87,8 +95,9 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              device: str = "cpu") -> dict:
-    """Synthesize (or reuse) scene ``name`` and run its identifications; the unit of work of both paths.
+              device: str = "cpu", fresh: bool = False) -> dict:
+    """Synthesize (or reuse) scene ``name`` and run its identifications (or reuse their stored record); the unit
+    of work of both paths.
 
     Args:
         name: suite scene.
@@ -109,11 +118,14 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
             (``IdentifyConfig.refine``); it must stay coarser than the ground truth's simulation.
         device: identification's simulator and renderer ("cpu" or "cuda"; ``IdentifyConfig.device``). The
             ground truth is synthesized on the CPU either way.
+        fresh: run the identifications even where ``work_dir/NAME/scene_result.json`` holds a record made with
+            the same settings, scene and code (module docstring).
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
         wall_seconds (the whole identification: optimisation, intervals and evaluation), materials}},
-        "wall_seconds"}; ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
+        "wall_seconds" (of the run that made the record), "reused" (whether this call reused it)};
+        ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
     """
     import torch
 
@@ -127,16 +139,29 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
+    plan = [(run_key(init, on), init, on, False) for init, on in RUNS]
+    if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
+        plan.append(("global_on", "prior", True, True))
+    plan = [p for p in plan if runs is None or p[0] in runs]
+    record_file = work / "scene_result.json"
+    signature = json_digest({"scene": name, "scene_files": tree_digest(folder), "code": code_digest(),
+                             "runs": [p[0] for p in plan], "iters": iters, "frames": frames,
+                             "render_scale": render_scale, "fid_weights": tree_digest(fid_weights) if fid_weights
+                             else None, "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
+                             "device": device})
+    if not fresh and record_file.is_file():
+        try:
+            record = json.loads(record_file.read_text())
+        except ValueError:  # a damaged record is made again
+            record = {}
+        if record.get("signature") == signature:
+            return {**record["result"], "reused": True}
     problem = load_sim_scene(folder, refine=refine, device=device)
     net = None
     if fid_weights:
         from endogsim.evaluate.fid import load_inception
 
         net = load_inception(fid_weights)
-    plan = [(run_key(init, on), init, on, False) for init, on in RUNS]
-    if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
-        plan.append(("global_on", "prior", True, True))
-    plan = [p for p in plan if runs is None or p[0] in runs]
     truth = {o.name: (o.E, o.nu) for o in problem.spec.objects if not o.rigid and o.has_material}
     done = {}
     for key, init, on, glob in plan:
@@ -154,7 +179,9 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
         done[key] = rec
-    return {"scene": name, "folder": str(folder), "runs": done, "wall_seconds": time.perf_counter() - t0}
+    result = {"scene": name, "folder": str(folder), "runs": done, "wall_seconds": time.perf_counter() - t0}
+    write_json_atomic(record_file, {"signature": signature, "result": result})
+    return {**result, "reused": False}
 
 
 def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict[str, dict]:
@@ -271,7 +298,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              device: str = "cpu", log=print) -> dict:
+              device: str = "cpu", fresh: bool = False, log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -290,6 +317,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             below the ground truth's 2).
         device: identification's device ("cpu" or "cuda"): the same computation in another order of
             floating-point sums.
+        fresh: run every scene again, even one whose stored record this run could reuse (module docstring).
     Returns:
         {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
@@ -318,7 +346,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
                fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
-               optimizer=optimizer, refine=refine, device=device)
+               optimizer=optimizer, refine=refine, device=device, fresh=fresh)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -333,7 +361,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             results.append(run_scene(**k, threads=threads))
     per_scene = {r["scene"]: r for r in results}
     for r in results:
-        log(f"  {r['scene']}: {r['wall_seconds']:.0f} s")
+        log(f"  {r['scene']}: {r['wall_seconds']:.0f} s" + (" (its stored record: the same settings, scene and "
+                                                           "code)" if r["reused"] else ""))
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
                          "time_budget": time_budget, "optimizer": optimizer, "refine": refine, "device": device},

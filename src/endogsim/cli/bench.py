@@ -144,6 +144,8 @@ def register(bench_app: typer.Typer) -> None:
         device: str = typer.Option("cpu", "--device", help="Identification's simulator and renderer: cpu | cuda "
                                    "(the ground truth is synthesized on the CPU)."),
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
+        fresh: bool = typer.Option(False, "--fresh", help="Run every scene again (by default a scene whose record in "
+                                   "the work folder was made with the same settings, scene and code is reused)."),
         fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
         threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
         scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
@@ -159,7 +161,7 @@ def register(bench_app: typer.Typer) -> None:
                         frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
                         ray_address=ray_address, threads=threads, runs=runs.split(",") if runs else None,
                         time_budget=time_budget, optimizer=optimizer, refine=refine, device=device,
-                        log=console.print)
+                        fresh=fresh, log=console.print)
         for t in res["tables"].values():
             print_table(t["title"], t["columns"], t["rows"])
             if t.get("note"):

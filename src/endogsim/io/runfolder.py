@@ -163,10 +163,12 @@ def frames_digest(frames: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def tree_digest(path: str | os.PathLike, exclude: str | os.PathLike | None = None) -> str | None:
+def tree_digest(path: str | os.PathLike, exclude: str | os.PathLike | None = None,
+                suffixes: tuple[str, ...] | None = None) -> str | None:
     """SHA-256 (hex) of a file's bytes, or of a folder's files (relative names and bytes; names starting
     with "." are skipped: locks and temporary files; so is the folder ``exclude``, e.g. a run folder kept
-    inside its data folder); None when ``path`` does not exist."""
+    inside its data folder; with ``suffixes``, only files whose names end so); None when ``path`` does not
+    exist."""
     path = Path(path)
     if not path.exists():
         return None
@@ -176,7 +178,8 @@ def tree_digest(path: str | os.PathLike, exclude: str | os.PathLike | None = Non
         skip = None if exclude is None else Path(exclude).resolve()
         files = sorted(p for p in path.rglob("*") if p.is_file()
                        and not any(s.startswith(".") for s in p.relative_to(path).parts)
-                       and (skip is None or not p.resolve().is_relative_to(skip)))
+                       and (skip is None or not p.resolve().is_relative_to(skip))
+                       and (suffixes is None or p.name.endswith(suffixes)))
     h = hashlib.sha256()
     for f in files:
         h.update(f.relative_to(path).as_posix().encode() + b"\0")
@@ -185,6 +188,12 @@ def tree_digest(path: str | os.PathLike, exclude: str | os.PathLike | None = Non
                 h.update(block)
         h.update(b"\0")
     return h.hexdigest()
+
+
+def code_digest() -> str:
+    """SHA-256 (hex) of this package's source and data files: a result stored by another version of the code
+    is not one this version would compute."""
+    return tree_digest(Path(__file__).resolve().parents[1], suffixes=(".py", ".json", ".toml"))
 
 
 def json_digest(obj: Any) -> str:
