@@ -153,8 +153,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         try:
             record = json.loads(record_file.read_text())
         except ValueError:  # a damaged record is made again
-            record = {}
-        if record.get("signature") == signature:
+            record = None
+        if isinstance(record, dict) and record.get("signature") == signature:
             return {**record["result"], "reused": True}
     problem = load_sim_scene(folder, refine=refine, device=device)
     net = None
@@ -338,8 +338,9 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     from endogsim.identify.config import IdentifyConfig
     from endogsim.physics.engine import resolve_device
 
-    # bad options, and a device this machine lacks, are refused before any scene
-    IdentifyConfig(optimizer=optimizer, refine=refine, device=device)
+    # bad options, and a device this machine lacks, are refused before any scene (the config does not check
+    # the device: that needs Warp)
+    IdentifyConfig(optimizer=optimizer, refine=refine)
     resolve_device(device)
     check_coarser_than_ground_truth(scenes, refine)  # every scene's, before the first one's work
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
