@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from functools import partial
 
 import numpy as np
 import pytest
@@ -26,7 +27,7 @@ from endogsim.identify.uncertainty import (
     walk_slice,
     widen,
 )
-from endogsim.materials.field import MaterialField, MaterialRecord
+from endogsim.materials.field import MaterialField, MaterialRecord, nu_to_raw
 
 THETA0 = 3.4  # the true value (think log10 E)
 
@@ -327,14 +328,18 @@ def test_nu_slice_ends_where_the_optimum_leaves_the_search_box():
     tried = []
 
     def per_frame(trial):
-        tried.append(float(trial.nu()[0]))
+        tried.append((float(trial.log10_E.detach()[0]), float(trial.nu().detach()[0])))
         return {0: 0.12, 2: 0.07, 4: 0.09}
 
     ivs = parameter_intervals(params, {1: "liver"}, per_frame, box, True)
     nu_iv = ivs[1]
     assert nu_iv.search_box == pytest.approx([0.0, nu_max])
-    assert max(tried) == pytest.approx(nu_max, abs=1e-6)  # walked to the edge, not to 0.49
-    assert nu_iv.interval == pytest.approx([0.0, nu_max])
+    at_optimum = [nu for log10_E, nu in tried if log10_E == 5.0]
+    assert max(at_optimum) == pytest.approx(nu_max, abs=1e-6)  # walked to the edge, not to 0.49
+    # E (a flat loss) is not identifiable, so nu is sliced again at the ends of E's interval, the whole box: at
+    # its soft end every nu is reachable
+    assert max(nu for log10_E, nu in tried if log10_E == 1.7) == pytest.approx(0.49, abs=1e-6)
+    assert nu_iv.interval == pytest.approx([0.0, nu_max])  # within the box at the optimum
     # an optimum whose E is reachable at every nu keeps the whole box; one on the edge has no side above it
     assert reachable_nu_max(params, 0, lambda trial: ([1.7], [6.0])) == 0.49
     on_edge = nu_iv.best
@@ -673,3 +678,60 @@ def test_a_failing_task_stops_its_siblings_and_its_own_error_is_raised():
         run_independent([walk] + [lambda k=k: slow(k) for k in range(20)], workers=2, cancel=cancel)
     assert cancel.is_set() and len(ran) < 20  # the walk stopped, and the tasks not started were dropped
     assert run_independent([lambda k=k: k * k for k in range(5)], workers=3) == [0, 1, 4, 9, 16]
+
+
+def test_a_parameter_is_taken_over_the_interval_of_a_partner_the_video_does_not_determine():
+    """impulse_paper at 1.5x (stop 60): E kept at its prior (not identifiable), and nu's slice through it excluded
+    the true nu, while at the stiff end of E's interval every nu fitted better than the optimum. Here the loss
+    l_t = k(x) (nu - 0.3 - eps_t)^2, with k = 1 up to x = log10 E = 4 and falling 100x a decade above it: E's
+    slice is flat below and falls above (not identifiable, the whole box); nu's slice through x = 4 is sharp
+    (it excludes a true 0.45), but at x = 6, E's interval's end, every nu fits better. Sliced there too, nu's
+    interval is the whole box and nu is not identifiable. Where the video determines both, nothing more is
+    simulated."""
+    import torch
+
+    eps = np.random.default_rng(3).normal(0.0, 0.03, 10)
+
+    def loss(log10_E: float, nu: float, coupled: bool) -> dict[int, float]:
+        k = 10.0 ** (-2.0 * max(log10_E - 4.0, 0.0)) if coupled else 1.0
+        other = 0.0 if coupled else (log10_E - 4.0 - 10 * eps[::-1]) ** 2  # E determined too, when not coupled
+        return {t: float(k * (nu - 0.3 - e) ** 2 + (0.0 if coupled else other[t])) for t, e in enumerate(eps)}
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    nu_best = 0.3 + float(eps.mean())
+    with torch.no_grad():
+        params.log10_E.fill_(4.0)
+        params.nu_raw.fill_(float(nu_to_raw(nu_best, 0.0, 0.49)))
+    tried = []
+
+    def per_frame(trial, coupled=True):
+        tried.append((float(trial.log10_E.detach()[0]), float(trial.nu().detach()[0])))
+        return loss(tried[-1][0], tried[-1][1], coupled)
+
+    seen = []
+    E, nu = parameter_intervals(params, {1: "liver"}, per_frame, lambda trial: ([1.7], [6.0]), True,
+                                on_trial=seen.append)
+    assert {t["at"] for t in seen} == {"", "E = 50.12 Pa", "E = 1e+06 Pa"}  # the progress display says where
+    assert not E.identifiable and E.interval == pytest.approx([10 ** 1.7, 1e6]) and E.partner_slices == []
+    # the slice through the optimum alone excludes the true 0.45 ...
+    ref = loss(4.0, nu_best, True)
+    center = walk_slice(nu_best, NU_STEPS, (0.0, 0.49), lambda v: paired_z(loss(4.0, v, True), ref), critical_z(10),
+                        significant_z(10))
+    assert center.interval[1] < 0.4 and all(center.significant)
+    # ... the slices at E's interval's ends do not
+    assert [p["partner"] for p in nu.partner_slices] == ["E", "E"]
+    assert [p["at"] for p in nu.partner_slices] == pytest.approx([10 ** 1.7, 1e6])
+    assert nu.partner_slices[0]["interval"] == pytest.approx(center.interval)  # k = 1 there too
+    assert nu.partner_slices[1]["interval"] == pytest.approx([0.0, 0.49])
+    assert all(z < 0 for *_, z in nu.partner_slices[1]["slice"])  # every nu fits better there
+    assert nu.interval == pytest.approx([0.0, 0.49]) and not nu.identifiable
+    assert "E's interval too" in nu.reason
+    ident = identified_field(init, params, [E, nu])
+    assert ident[1].source == NOT_IDENTIFIABLE and ident[1].nu == 0.4  # the prior, inside the interval
+    # both determined: no slice at a partner's ends, no simulation beyond the two slices
+    tried.clear()
+    E, nu = parameter_intervals(params, {1: "liver"}, partial(per_frame, coupled=False),
+                                lambda trial: ([1.7], [6.0]), True)
+    assert E.identifiable and nu.identifiable and E.partner_slices == nu.partner_slices == []
+    assert all(e == 4.0 or n == pytest.approx(nu_best) for e, n in tried[1:])

@@ -91,7 +91,8 @@ def register(app: typer.Typer) -> None:
                 start_trials()
                 unit = " Pa" if t["parameter"] == "E" else ""
                 bar.update(trials[0], advance=1, description=f"intervals ({t['object']} {t['parameter']} "
-                                                             f"{t['value']:.4g}{unit}, {t['grid']} grid)")
+                                                             f"{t['value']:.4g}{unit}, {t['grid']} grid"
+                                                             f"{', ' + t['at'] if t.get('at') else ''})")
 
             m = run_identify(scene, out, init=init, config=cfg, resume=not fresh, progress=cb, video=not no_video,
                              on_trial=trial_done)

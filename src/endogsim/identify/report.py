@@ -161,7 +161,8 @@ def interval_table(intervals: list[ParameterInterval]) -> dict:
 def identifiable_table(intervals: list[ParameterInterval]) -> dict:
     """{object name: {parameter: {"identifiable": bool, "reason", "interval", "statistical_interval",
     "discretisation", "search_box", "evidence"}}} (the last two of :class:`ParameterInterval`; None where the
-    discretisation error was not measured)."""
+    discretisation error was not measured). ``evidence`` holds the slice through the optimum and
+    ``partner_slices``, the slices at the ends of a partner's interval where the video does not determine it."""
     out: dict = {}
     for iv in intervals:
         out.setdefault(iv.name, {})[iv.parameter] = {
@@ -170,8 +171,14 @@ def identifiable_table(intervals: list[ParameterInterval]) -> dict:
             "search_box": iv.search_box, "best": iv.best,
             "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
                          "significant_z": iv.significant_z, "min_relative_rise": iv.min_relative_rise,
-                         "slice": [{"value": v, "delta_loss": d, "noise": se, "z": z} for v, d, se, z in iv.slice]}}
+                         "slice": _slice_json(iv.slice),
+                         "partner_slices": [{**p, "slice": _slice_json(p["slice"])} for p in iv.partner_slices]}}
     return out
+
+
+def _slice_json(records: list[list[float]]) -> list[dict]:
+    """A slice's [[value, Delta L, SE, z], ...] as records."""
+    return [{"value": v, "delta_loss": d, "noise": se, "z": z} for v, d, se, z in records]
 
 
 def comparison_frames(observed: np.ndarray, simulated: np.ndarray, flow_error: np.ndarray) -> np.ndarray:

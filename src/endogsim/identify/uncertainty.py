@@ -22,6 +22,17 @@ significant value: a parameter is declared not identifiable only after the loss 
 the whole search box on a side.
 One whose first gradient was zero is not identifiable, whatever its slice.
 
+A slice holds the other parameter at the optimum, so where the video does not determine that partner (its value
+is then arbitrary: usually its prior) the slice answers a question nobody asked. The profile likelihood would let
+the partner go wherever the loss is least; a cheap version of it is taken instead: the parameter is sliced again
+with its partner at each end of the partner's statistical interval, and combined with the slice through the
+optimum by :func:`profiled` (a value lies inside when some slice does not exclude it; a side counts as
+significant only when it does in every slice). On the suite's ``impulse_paper`` at 1.5x (E kept at its prior,
+10 kPa, for a true 100 kPa) the slice through the optimum excluded the true nu 0.45 (interval [0.465, 0.49]),
+while at the upper end of E's interval, 809 kPa, every nu from 0 to 0.49 fitted better than the optimum
+(docs/IDENTIFICATION.md section 1). It costs two more slices (up to 16 simulations) per parameter whose partner
+is not identifiable, none where the video determines both.
+
 A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
 (identification's ``tol``, the relative change its optimiser counts as no progress) counts with at most the
 interval's critical z, however consistent over the frames: it neither excludes its value from the interval nor
@@ -84,7 +95,7 @@ from endogsim.warp_runtime import Cancelled, check_cancelled, run_independent
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
            "DiscretisationError", "counted_z", "paired_z", "critical_z", "significant_z", "interval_from_slice",
            "walk_slice", "walk_side", "slice_from_sides",
-           "identifiability", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
+           "identifiability", "profiled", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
            "reachable_nu_max", "parameter_intervals"]
 
 #: The intervals' level (two-sided): the probability that the true value lies inside.
@@ -128,6 +139,11 @@ class ParameterInterval:
             discretisation error was measured, and ``interval`` is this one).
         discretisation: :class:`DiscretisationError` as a dict (None: not measured: no coarser simulation,
             one that failed (``reason`` says so), or a statistical interval that is the whole search box).
+        partner_slices: the slices taken with the object's other parameter at the ends of its statistical
+            interval, where the video does not determine that one (:func:`profiled`): [{"partner": "E" | "nu",
+            "at": its value (Pa for E), "interval": [lo, hi] this slice's, "slice": [[value, Delta L, SE, z],
+            ...]}]; empty where none was taken. ``interval``, ``statistical_interval`` and ``identifiable``
+            take them in.
     """
 
     object_id: int
@@ -145,6 +161,7 @@ class ParameterInterval:
     min_relative_rise: float = 0.0
     statistical_interval: list[float] | None = None
     discretisation: dict | None = None
+    partner_slices: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -330,6 +347,20 @@ def identifiability(sl: Slice, first_gradient: float | None, span: str, signific
                    f"{' or '.join(flat)} the optimum within {span}")
 
 
+def profiled(center: Slice, partners: list[Slice], box: tuple[float, float]) -> Slice:
+    """One parameter's slice across its partner's values: ``center`` (the partner at the optimum) and
+    ``partners`` (the same slice with the partner elsewhere: at the ends of its statistical interval), a coarse
+    profile of the loss (module docstring). A value lies inside when some slice does not exclude it, so the
+    interval is the hull of the slices' intervals, clipped to ``box`` (the parameter's at the optimum); a side is
+    bounded, or significant, only where every slice is (a value is ruled out only when it is whatever the
+    partner). The records are ``center``'s (the partners' stay with them); the failures are all of them."""
+    every = [center, *partners]
+    interval = [max(box[0], min(s.interval[0] for s in every)), min(box[1], max(s.interval[1] for s in every))]
+    bounded = tuple(all(s.bounded[i] for s in every) for i in range(2))
+    significant = tuple(all(s.significant[i] for s in every) for i in range(2))
+    return Slice(interval, bounded, significant, center.records, [f for s in every for f in s.failures])
+
+
 @dataclass
 class DiscretisationError:
     """How far a parameter's optimum moves at a coarser discretisation, and the error bar that implies.
@@ -494,7 +525,8 @@ def parameter_intervals(
             discretisation error measured) once every slice has ended: work that needs only those (e.g.
             evaluating the materials they imply) runs while the coarse walks do. Its result is dropped.
         on_trial: called after every trial simulation, from the thread that ran it (progress display), with
-            {"object": name, "parameter": "E" | "nu", "value": Pa or -, "grid": "fine" | "coarse"}.
+            {"object": name, "parameter": "E" | "nu", "value": Pa or -, "grid": "fine" | "coarse", "at": where the
+            partner was held when not at the optimum (e.g. "nu = 0.490"), else ""}.
         min_relative_rise: the least rise of the loss, relative to the optimum's, that counts (module
             docstring, :func:`counted_z`; identification passes its ``tol``).
     """
@@ -510,24 +542,29 @@ def parameter_intervals(
     # (a failure there is each walk's, and each says so).
     coarse_loss = None if coarse_evaluate is None else _shared_loss(coarse_evaluate, cancel)
 
-    def tell(name: str, what: str, v: float, grid: str) -> None:
+    def tell(name: str, what: str, v: float, grid: str, at: str = "") -> None:
         if on_trial is not None:
-            on_trial({"object": name, "parameter": what, "value": 10.0 ** v if what == "E" else v, "grid": grid})
+            on_trial({"object": name, "parameter": what, "value": 10.0 ** v if what == "E" else v, "grid": grid,
+                      "at": at})
 
     # Every slice's two sides are independent simulations, and so are the two sides of its coarse walk, which
     # need only know whether the slice left the interval short of the search box (else no error added to it
-    # could change it: the walk is not run). Run them all, ``workers`` at a time, the slices first (a coarse
-    # side starts after them, so what it waits for is running), then assemble each interval in order.
+    # could change it: the walk is not run), and of its slices at the partner's interval ends, which need the
+    # partner's slice. Run them all, ``workers`` at a time, the slices first (the others start after them, so
+    # what they wait for is running), then assemble each interval in order.
+    def search_box(trial: MaterialParams, slot: int, what: str) -> tuple[float, float]:
+        """Slot ``slot``'s search box for log10 E or nu at ``trial`` (E's upper end depends on nu, and nu's on E)."""
+        if what == "E":
+            return tuple(b[slot] for b in box_log10_E(trial))
+        return params.nu_bounds[0], reachable_nu_max(trial, slot, box_log10_E)
+
     plans, sides, walks, ended = [], [], [], []  # ended: each slice side's result, when it has one
     for slot in range(params.log10_E.shape[0]):
         oids = [o for o in params.object_ids if params.slot(o) == slot]
         name = ", ".join(object_names.get(o, str(o)) for o in oids)
-        lo_box, hi_box = (b[slot] for b in box_log10_E(params))
-        specs = [("E", E_STEPS, (lo_box, hi_box), float(params.log10_E.detach()[slot]))]
+        specs = [("E", E_STEPS, search_box(params, slot, "E"), float(params.log10_E.detach()[slot]))]
         if optimise_nu:
-            nu_best = float(params.nu().detach()[slot])
-            nu_box = (params.nu_bounds[0], reachable_nu_max(params, slot, box_log10_E))
-            specs.append(("nu", NU_STEPS, nu_box, nu_best))
+            specs.append(("nu", NU_STEPS, search_box(params, slot, "nu"), float(params.nu().detach()[slot])))
         for what, steps, box, best in specs:
             def compare(v: float, slot=slot, what=what, name=name) -> tuple[float, float, float]:
                 check_cancelled(cancel)
@@ -567,19 +604,70 @@ def parameter_intervals(
                                                      threshold))]
             walks += [partial(coarse_walk, -1), partial(coarse_walk, 1)] if coarse_loss is not None else []
 
-    def interval_of(plan: tuple, down: SliceSide, up: SliceSide, coarse: list) -> ParameterInterval:
-        """One parameter's interval from its slice's sides and its coarse walk's ([None, None]: none)."""
-        slot, oids, name, what, steps, box, best = plan
+    def first_gradient(slot: int, what: str) -> float | None:
+        if first_gradients is None:
+            return None
+        return first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
+
+    # Where the video does not determine a parameter, its partner's slice through the optimum is conditional on
+    # an arbitrary value of it (usually its prior): the partner is sliced again at the ends of the parameter's
+    # statistical interval (module docstring). Each such side waits for the parameter's slice to end.
+    partner_plans = [(k, j, end, side) for k, plan in enumerate(plans) for j, other in enumerate(plans)
+                     if j != k and other[0] == plan[0] for end in (0, 1) for side in (-1, 1)]
+    partner_ended = [Future() for _ in partner_plans]
+
+    def partner_side(k: int, j: int, end: int, side: int) -> tuple[float, tuple[float, float], SliceSide] | None:
+        """One side of plan ``k``'s slice with plan ``j``'s parameter at its interval's end ``end`` (0: lower):
+        (that value, the box there, the side); None where the video determines plan ``j``'s parameter."""
+        slot, _, name, what, steps, _, best = plans[k]
+        _, _, _, partner, _, partner_box, partner_best = plans[j]
+        try:
+            sl = slice_from_sides(partner_best, partner_box, threshold, stop, ended[2 * j].result(),
+                                  ended[2 * j + 1].result())
+        except BaseException:  # the slice's own error is the one raised
+            raise Cancelled() from None
+        if identifiability(sl, first_gradient(slot, partner), "the search box", significance)[0]:
+            return None
+        at = _with_value(params, slot, partner, sl.interval[end])
+        where = f"E = {10.0 ** sl.interval[end]:.4g} Pa" if partner == "E" else f"nu = {sl.interval[end]:.3f}"
+        box = search_box(at, slot, what)
+
+        def compare(v: float) -> tuple[float, float, float]:
+            check_cancelled(cancel)
+            per_frame = evaluate(_with_value(at, slot, what, v))
+            tell(name, what, v, "fine", where)
+            return paired_z(per_frame, reference)
+
+        return sl.interval[end], box, walk_side(best, steps, box, compare, stop, side, min_rise, threshold)
+
+    def interval_of(k: int, down: SliceSide, up: SliceSide, coarse: list, partners: list) -> ParameterInterval:
+        """Plan ``k``'s interval from its slice's sides, its coarse walk's ([None, None]: none) and its slices at
+        the partner's interval ends ([(value, box, side)] down and up at the lower end, then at the upper; None
+        where none was taken)."""
+        slot, oids, name, what, steps, box, best = plans[k]
+        to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
         err = next((c for c in coarse if isinstance(c, EndoGSimError)), None)
         if err is None and coarse[0] is not None:
             err = discretisation_from_sides(best, float(coarse_ratio), *coarse)
-        sl = slice_from_sides(best, box, threshold, stop, down, up)
+        center = slice_from_sides(best, box, threshold, stop, down, up)
+        others, partner_slices = [], []
+        for down_there, up_there in zip(partners[::2], partners[1::2]):  # at the partner's lower end, its upper
+            if down_there is not None:
+                at, box_there, _ = down_there
+                others.append(slice_from_sides(best, box_there, threshold, stop, down_there[2], up_there[2]))
+                partner = next(p[3] for p in plans if p[0] == slot and p[3] != what)
+                partner_slices.append({"partner": partner, "at": 10.0 ** at if partner == "E" else at,
+                                       "interval": [to_value(v) for v in others[-1].interval],
+                                       "slice": [[to_value(r[0])] + r[1:] for r in others[-1].records]})
+        sl = profiled(center, others, box)
         (lo, hi), records = sl.interval, sl.records
-        g0 = None
-        if first_gradients is not None:
-            g0 = first_gradients.get("log10_E" if what == "E" else "nu_raw", [None] * (slot + 1))[slot]
+        g0 = first_gradient(slot, what)
         ok, reason = identifiability(sl, g0, "the search box", significance)
-        to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+        if partner_slices:
+            reason += (f"; taken over {partner_slices[0]['partner']}'s interval too (not identifiable), whose ends "
+                       "give " + ", ".join(f"[{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]" for p in partner_slices)
+                       + f" against [{to_value(center.interval[0]):.4g}, {to_value(center.interval[1]):.4g}] at "
+                       "the optimum")
         small = [r for r in records if counted_z(r[1], r[3], min_rise, threshold) < r[3]]  # the floor decided
         if small:
             reason += (f"; {len(small)} trial value(s) whose loss rose consistently over the frames but by less "
@@ -616,25 +704,31 @@ def parameter_intervals(
             slice=[[to_value(r[0])] + r[1:] for r in records], first_gradient=g0,
             critical_z=threshold if math.isfinite(threshold) else None,
             significant_z=significance if math.isfinite(significance) else None,
-            min_relative_rise=min_relative_rise, statistical_interval=statistical, discretisation=disc)
+            min_relative_rise=min_relative_rise, statistical_interval=statistical, discretisation=disc,
+            partner_slices=partner_slices)
 
-    def assemble(slices: list[SliceSide], coarse: list[CoarseSide | EndoGSimError | None]) -> list[ParameterInterval]:
-        """Every parameter's interval from its slice's two sides and its coarse walk's (None: none)."""
-        return [interval_of(plan, slices[2 * k], slices[2 * k + 1], coarse[2 * k: 2 * k + 2] or [None, None])
-                for k, plan in enumerate(plans)]
+    def assemble(slices: list[SliceSide], partners: list, coarse: list[CoarseSide | EndoGSimError | None]
+                 ) -> list[ParameterInterval]:
+        """Every parameter's interval from its slice's two sides, its slices at the partner's interval ends
+        (:func:`partner_side`'s, in ``partner_plans``' order) and its coarse walk's (None: none)."""
+        return [interval_of(k, slices[2 * k], slices[2 * k + 1], coarse[2 * k: 2 * k + 2] or [None, None],
+                            [r for (i, *_), r in zip(partner_plans, partners) if i == k] or [None] * 4)
+                for k in range(len(plans))]
 
-    tasks = sides + walks
+    partner_tasks = [partial(_resolving, f, partial(partner_side, *pp)) for f, pp in zip(partner_ended, partner_plans)]
+    tasks = sides + partner_tasks + walks
     if then is not None:
         def after_slices() -> None:
             try:
-                slices = [f.result() for f in ended]
+                slices, partners = [f.result() for f in ended], [f.result() for f in partner_ended]
             except BaseException:  # a slice's own error is the one raised
                 raise Cancelled() from None
-            then(assemble(slices, []))
+            then(assemble(slices, partners, []))
 
         tasks.append(after_slices)
     results = run_independent(tasks, workers, cancel)
-    return assemble(results[:len(sides)], results[len(sides):len(sides) + len(walks)])
+    n, m = len(sides), len(partner_tasks)
+    return assemble(results[:n], results[n:n + m], results[n + m:n + m + len(walks)])
 
 
 def _resolving(future: Future, task: Callable[[], R]) -> R:

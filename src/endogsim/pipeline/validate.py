@@ -274,7 +274,8 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
                          video=cfg.pipeline.video,
                          progress=lambda k, n, rec: log(f"  iteration {k}/{n}: loss {rec['loss']:.5g}"),
                          on_trial=lambda t: log(f"  interval trial: {t['object']} {t['parameter']} = {t['value']:.4g}"
-                                                f"{' Pa' if t['parameter'] == 'E' else ''} ({t['grid']} grid)"))
+                                                f"{' Pa' if t['parameter'] == 'E' else ''} ({t['grid']} grid"
+                                                f"{', ' + t['at'] if t.get('at') else ''})"))
         calibrated = MaterialField.load(out / "calibrate" / "materials_identified.json")
         # The calibration's own starting field: an MLLM asked again could answer otherwise.
         prior = MaterialField.load(out / "calibrate" / "materials_init.json")
