@@ -544,8 +544,7 @@ def parameter_intervals(
 
     def tell(name: str, what: str, v: float, grid: str, at: str = "") -> None:
         if on_trial is not None:
-            on_trial({"object": name, "parameter": what, "value": 10.0 ** v if what == "E" else v, "grid": grid,
-                      "at": at})
+            on_trial({"object": name, "parameter": what, "value": _value(what, v), "grid": grid, "at": at})
 
     # Every slice's two sides are independent simulations, and so are the two sides of its coarse walk, which
     # need only know whether the slice left the interval short of the search box (else no error added to it
@@ -629,7 +628,7 @@ def parameter_intervals(
         if identifiability(sl, first_gradient(slot, partner), "the search box", significance)[0]:
             return None
         at = _with_value(params, slot, partner, sl.interval[end])
-        where = f"E = {10.0 ** sl.interval[end]:.4g} Pa" if partner == "E" else f"nu = {sl.interval[end]:.3f}"
+        where = f"E = {_value(partner, sl.interval[end]):.4g} Pa" if partner == "E" else f"nu = {sl.interval[end]:.3f}"
         box = search_box(at, slot, what)
 
         def compare(v: float) -> tuple[float, float, float]:
@@ -645,7 +644,8 @@ def parameter_intervals(
         the partner's interval ends ([(value, box, side)] down and up at the lower end, then at the upper; None
         where none was taken)."""
         slot, oids, name, what, steps, box, best = plans[k]
-        to_value = (lambda x: 10.0 ** x) if what == "E" else (lambda x: x)
+        to_value = partial(_value, what)
+        partner = "nu" if what == "E" else "E"
         err = next((c for c in coarse if isinstance(c, EndoGSimError)), None)
         if err is None and coarse[0] is not None:
             err = discretisation_from_sides(best, float(coarse_ratio), *coarse)
@@ -655,8 +655,7 @@ def parameter_intervals(
             if down_there is not None:
                 at, box_there, _ = down_there
                 others.append(slice_from_sides(best, box_there, threshold, stop, down_there[2], up_there[2]))
-                partner = next(p[3] for p in plans if p[0] == slot and p[3] != what)
-                partner_slices.append({"partner": partner, "at": 10.0 ** at if partner == "E" else at,
+                partner_slices.append({"partner": partner, "at": _value(partner, at),
                                        "interval": [to_value(v) for v in others[-1].interval],
                                        "slice": [[to_value(r[0])] + r[1:] for r in others[-1].records]})
         sl = profiled(center, others, box)
@@ -763,6 +762,11 @@ def _shared_loss(evaluate: Callable[[MaterialParams], dict[int, float]],
         return future.result()
 
     return loss
+
+
+def _value(what: str, x: float) -> float:
+    """The value of ``what`` ("E": Pa, "nu") at slice coordinate ``x`` (log10 E, nu): slices walk E in decades."""
+    return 10.0 ** x if what == "E" else x
 
 
 def _with_value(params: MaterialParams, slot: int, what: str, value: float) -> MaterialParams:
