@@ -129,6 +129,10 @@ def test_identification_at_a_refined_discretisation_says_so_and_refuses_a_scene_
     assert "1.5x the scene's identification discretisation" in (tmp_path / "fine" / "summary.txt").read_text()
     base = run_identify(tiny, tmp_path / "base", init="prior", config=fast_config(iters=0), video=False, problem=problem)
     assert base["discretisation"]["refine"] == 1.0 and base["discretisation"]["grid"] == problem.settings.grid
+    # the synthesized scene's own force scales: tiny's gravity points into the scene, along the camera's z
+    assert base["force_scales"] == {"gravity_m_s2": [0.0, 0.0, 9.81], "frame_dt_s": problem.mpm.frame_dt,
+                                    "damping_per_s": problem.mpm.damping, "mass_scaling": 1.0, "applied_forces": 0,
+                                    "impulses": 0, "kinematic_instruments": 1, "scales": ["weight", "inertia"]}
     with pytest.raises(DataError, match="refined 1.5x"):
         run_identify(tiny, tmp_path / "mixed", init="prior", config=cfg, video=False, problem=problem)
 
@@ -404,6 +408,7 @@ def test_cli_identify_iters_zero(tiny, tmp_path):
     assert m["iterations"] == 0 and m["init"] == "prior"
     # no optimisation ran: the table gives the value's source (the prior), never "identified"
     assert m["materials"]["tissue"]["source"] == "prior" and "identified" not in r.output
+    assert "E's scale: weight (gravity 9.81 m/s^2 along (0, 0, 1))" in " ".join(r.output.split())
     bad = CliRunner().invoke(app, ["identify", str(tmp_path / "missing"), "--out", str(out)])
     assert bad.exit_code == 2 and "scene.json" in bad.output
 

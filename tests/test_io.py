@@ -378,6 +378,32 @@ def test_cli_run_and_validate_refuse_a_negative_support_friction_before_any_work
         assert not (tmp_path / cmd / "recon").exists()
 
 
+def test_cli_run_and_validate_take_the_force_scales_and_refuse_bad_ones_before_any_work(tmp_path, monkeypatch):
+    """Gravity, damping and mass scaling set the scale of the E found (metrics.json ``force_scales``); a user who
+    knows them (the camera's orientation from a robot's kinematics) gives them."""
+    root = make_endonerf(tmp_path / "s")
+    bad = [(["--gravity-direction", "0,0,0"], "gravity_direction"), (["--gravity-direction", "down"], "three numbers"),
+           (["--gravity-direction", "0,1"], "gravity_direction"), (["--gravity", "-9.81"], "gravity"),
+           (["--damping", "nan"], "damping"), (["--mass-scaling", "0.5"], "mass_scaling")]
+    for cmd in ("run", "validate"):
+        for given, word in bad:
+            r = CliRunner().invoke(_app(), [cmd, str(root), "--out", str(tmp_path / cmd), *given])
+            assert r.exit_code == 2, (given, r.output)
+            assert word in r.output and "Traceback" not in r.output
+            assert not (tmp_path / cmd / "recon").exists()
+    import endogsim.pipeline.run as pipeline_run
+    from endogsim.pipeline.scene_from_recon import RealScenario
+
+    seen = []
+    monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, cfg, **kw: seen.append(cfg.scenario) or {
+        "stages": {}})
+    given = ["--gravity-direction", "0,0,1", "--damping", "10", "--mass-scaling", "1", "--gravity", "9.81"]
+    assert CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "g"), *given]).exit_code == 0
+    assert CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "d")]).exit_code == 0
+    assert seen[0] == RealScenario(gravity_direction=(0.0, 0.0, 1.0), damping=10.0, mass_scaling=1.0)
+    assert seen[1] == RealScenario()  # the scenario's own defaults where nothing is given
+
+
 def test_cli_run_and_validate_take_the_optimiser_and_refuse_an_unknown_one_before_any_work(tmp_path, monkeypatch):
     root = make_endonerf(tmp_path / "s")
     for cmd in ("run", "validate"):

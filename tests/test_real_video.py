@@ -378,8 +378,16 @@ def test_validate_returns_every_figure_and_its_prior_baseline_is_a_plain_simulat
     anchors = [b for b in json.loads((run / "scene" / "scene.json").read_text())["scenario"]["boundary_conditions"]
                if b["type"] == "anchors"]
     assert anchors and all(b["back_face"] == "support" and b["support_friction"] == 1.0 for b in anchors)
+    # What sets E's scale is the real-video scenario's assumptions (RealScenario), said wherever E is.
+    scales = res["force_scales"]
+    assert scales["gravity_m_s2"] == [0.0, 9.81, 0.0] and scales["mass_scaling"] == 4.0
+    assert scales["damping_per_s"] == 100.0 and scales["scales"] == ["weight", "inertia"]
+    assert scales["kinematic_instruments"] == 1
+    assert "E's scale: weight (gravity 9.81 m/s^2 along (0, 1, 0)) and inertia (frames" in (
+        run / "calibrate" / "summary.txt").read_text()
     html = (run / "report.html").read_text()
     assert "Held-out validation" in html and "Identifiability" in html and "Tissue coverage" in html
+    assert "<h2>What sets E's scale</h2>" in html and "masses x4, damping 100/s" in html
     # how the instrument was fitted, and frame 0 with its capsule drawn
     assert "<h2>Instruments</h2>" in html and 'alt="instruments at frame 0"' in html and "working end from" in html
     # The prior baseline is a plain simulation of the scene with the initial materials, scored the same way.

@@ -45,6 +45,39 @@ _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed
                   "tangential speed beats this times the normal speed it loses (0: frictionless).")
 
 
+#: ``--gravity``, ``--gravity-direction``, ``--damping`` and ``--mass-scaling`` of ``run`` and ``validate``: the
+#: scenario's force scales, which set E's scale (``RealScenario``; metrics.json ``force_scales``).
+_FORCE_SCALE_NOTE = (" It sets the scale of the E found: prescribed motion alone fixes nu and the ratios of E, not E "
+                     "(docs/REAL_VIDEO.md section 3).")
+_GRAVITY_HELP = "Gravity's magnitude (m/s^2; 0: none). Default 9.81." + _FORCE_SCALE_NOTE
+_GRAVITY_DIRECTION_HELP = ("Gravity's direction as x,y,z in frame 0's camera coordinates (+x image right, +y image "
+                           "down, +z along the view), e.g. from the robot's kinematics. Default 0,1,0: the "
+                           "laparoscope's upright view." + _FORCE_SCALE_NOTE)
+_DAMPING_HELP = "Grid velocity damping of the tissue (1/s). Default 100: over-damped, as on EndoNeRF pulling." + (
+    _FORCE_SCALE_NOTE)
+_MASS_SCALING_HELP = ("Quasi-static mass scaling k >= 1: the tissue's inertia x k, weight and damping forces "
+                      "unchanged, substeps / sqrt(k). Default 4; 1 for fast motion, where inertia matters."
+                      + _FORCE_SCALE_NOTE)
+
+
+def _real_scenario(grasping: str, border_motion: str, support_friction: float, gravity: float | None,
+                   gravity_direction: str | None, damping: float | None, mass_scaling: float | None):
+    """The real-video scenario of ``run`` and ``validate``: its defaults but for the options given (a bad value is
+    refused here, before any work)."""
+    from endogsim.errors import DataError
+    from endogsim.pipeline.scene_from_recon import RealScenario
+
+    given = {"grasping": grasping, "border_motion": border_motion, "support_friction": support_friction}
+    if gravity_direction is not None:
+        try:
+            given["gravity_direction"] = tuple(float(v) for v in gravity_direction.split(","))
+        except ValueError:
+            raise DataError(f"--gravity-direction {gravity_direction!r}: give three numbers x,y,z") from None
+    given.update({k: v for k, v in (("gravity", gravity), ("damping", damping), ("mass_scaling", mass_scaling))
+                  if v is not None})
+    return RealScenario(**given)
+
+
 #: ``--optimizer`` of ``run`` and ``validate`` (:data:`endogsim.pipeline.run.PIPELINE_OPTIMIZER`).
 #: The default is named here, not imported: the pipeline's module pulls in torch, and the CLI starts without it
 #: (tests/test_io.py checks that the two agree).
@@ -156,20 +189,23 @@ def register(app: typer.Typer) -> None:
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
         border_motion: str = typer.Option("tracked", "--border-motion", help=_BORDER_HELP),
         support_friction: float = typer.Option(1.0, "--support-friction", help=_FRICTION_HELP),
+        gravity: Optional[float] = typer.Option(None, "--gravity", help=_GRAVITY_HELP),
+        gravity_direction: Optional[str] = typer.Option(None, "--gravity-direction", help=_GRAVITY_DIRECTION_HELP),
+        damping: Optional[float] = typer.Option(None, "--damping", help=_DAMPING_HELP),
+        mass_scaling: Optional[float] = typer.Option(None, "--mass-scaling", help=_MASS_SCALING_HELP),
     ) -> None:
         """Reconstruct, initialise materials, identify, simulate a new interaction and report, resuming the
         stages already done."""
         from endogsim.cli.common import console
         from endogsim.pipeline.run import PipelineConfig, run_pipeline
-        from endogsim.pipeline.scene_from_recon import RealScenario
         from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
         ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction,
-                             scenario=RealScenario(grasping=grasping, border_motion=border_motion,
-                                                   support_friction=support_friction))
+                             scenario=_real_scenario(grasping, border_motion, support_friction, gravity,
+                                                     gravity_direction, damping, mass_scaling))
         state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer(), fresh=fresh)
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")
 
@@ -198,6 +234,10 @@ def register(app: typer.Typer) -> None:
         grasping: str = typer.Option("graspers", "--grasping", help=_GRASPING_HELP),
         border_motion: str = typer.Option("tracked", "--border-motion", help=_BORDER_HELP),
         support_friction: float = typer.Option(1.0, "--support-friction", help=_FRICTION_HELP),
+        gravity: Optional[float] = typer.Option(None, "--gravity", help=_GRAVITY_HELP),
+        gravity_direction: Optional[str] = typer.Option(None, "--gravity-direction", help=_GRAVITY_DIRECTION_HELP),
+        damping: Optional[float] = typer.Option(None, "--damping", help=_DAMPING_HELP),
+        mass_scaling: Optional[float] = typer.Option(None, "--mass-scaling", help=_MASS_SCALING_HELP),
     ) -> None:
         """Calibrate the materials on the first frames of a video, predict the held-out rest with the tracked
         instrument motion, and compare with the filmed frames (EPE against the observed flow, masked PSNR)
@@ -205,9 +245,9 @@ def register(app: typer.Typer) -> None:
         OUT/report.html."""
         from endogsim.cli.common import console, print_table
         from endogsim.errors import DataError
+        from endogsim.evaluate.report_html import force_scale_text
         from endogsim.io.atomic import write_json_atomic
         from endogsim.pipeline.run import PipelineConfig
-        from endogsim.pipeline.scene_from_recon import RealScenario
         from endogsim.pipeline.validate import (
             ValidateConfig,
             run_validate,
@@ -221,9 +261,10 @@ def register(app: typer.Typer) -> None:
         ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
                              pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
-                                                     scenario=RealScenario(grasping=grasping,
-                                                                           border_motion=border_motion,
-                                                                           support_friction=support_friction)))
+                                                     scenario=_real_scenario(grasping, border_motion,
+                                                                             support_friction, gravity,
+                                                                             gravity_direction, damping,
+                                                                             mass_scaling)))
         res = run_validate(data, out, cfg, on_stage=_stage_printer(), log=lambda m: console.print(m))
         cols, rows = validation_table(res)
         print_table(f"Held-out frames {res['train_frames']}..{res['train_frames'] + res['test_frames'] - 1} of "
@@ -234,6 +275,8 @@ def register(app: typer.Typer) -> None:
                 console.print(f"{name} {par}: {kept:.4g} (loss least at {v['best']:.4g}), 90% interval "
                               f"[{v['interval'][0]:.4g}, {v['interval'][1]:.4g}] "
                               f"({'identifiable' if v['identifiable'] else 'NOT identifiable'}: {v['reason']})")
+        if res.get("force_scales"):
+            console.print(f"E's scale: {force_scale_text(res['force_scales'])}")
         console.print(f"{res['seconds']:.0f} s; report: {out / 'report.html'}")
         if json_out is not None:
             write_json_atomic(json_out, res)

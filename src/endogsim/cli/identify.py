@@ -62,6 +62,7 @@ def register(app: typer.Typer) -> None:
         """Refine E and nu of the deformable objects so the simulated, rendered scene matches the video
         (appearance and optical flow). Writes identified materials, metrics.json, plots, a video, a summary."""
         from endogsim.cli.common import console, print_table, progress, with_interval
+        from endogsim.evaluate.report_html import force_scale_text
         from endogsim.identify import run_identify
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
@@ -114,5 +115,6 @@ def register(app: typer.Typer) -> None:
             scores = [("RE E", m["re_E"]), ("RE nu", m["re_nu"]), ("RE G", m["re_G"]), ("RE K", m["re_K"]),
                       ("RE mean", m["re_mean"])] + scores
         print_table("Scores", ["metric", "value"], scores)
+        console.print(f"E's scale: {force_scale_text(m['force_scales'])}")
         console.print(f"wrote {out}")
 

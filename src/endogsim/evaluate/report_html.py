@@ -190,6 +190,22 @@ def simulated_at_text(d: dict) -> str:
             f"{d['substeps']} substeps a frame ({d['refine']:g}x the scene's identification discretisation)")
 
 
+def force_scale_text(d: dict) -> str:
+    """'weight (gravity 9.81 m/s^2 along (0, 1, 0)) and inertia (frames 33.3 ms apart, masses x4, damping
+    100/s); ...' from metrics.json's ``force_scales`` record (:func:`endogsim.identify.report.force_scale_record`)."""
+    g = math.hypot(*d["gravity_m_s2"])
+    parts = []
+    if "weight" in d["scales"]:
+        along = ", ".join(f"{v / g + 0.0:.2g}" for v in d["gravity_m_s2"])  # + 0.0: no "-0"
+        parts.append(f"weight (gravity {g:.3g} m/s^2 along ({along}))")
+    mass = f", masses x{d['mass_scaling']:g}" if d["mass_scaling"] != 1 else ""
+    parts.append(f"inertia (frames {1e3 * d['frame_dt_s']:.3g} ms apart{mass}, damping {d['damping_per_s']:g}/s)")
+    parts += [f"{n} {what}" for n, what in ((d["applied_forces"], "applied force(s)"), (d["impulses"], "impulse(s)"))
+              if n]
+    return (" and ".join(parts) + "; an E fitted to the video holds for these values and moves with them (instruments "
+            "and held borders prescribe motion, which alone fixes nu and the ratios of E, not E)")
+
+
 def discretisation_text(parameter: str, disc: dict) -> str:
     """'+-0.63 decades (the optimum on a grid 1.42x coarser: 6474 Pa, -0.0888 decades)' from the dict of a
     :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu")."""
@@ -391,6 +407,9 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
         parts.append(f"<h2>Tissue coverage</h2><p>largest drop of the rendered tissue coverage: "
                      f"{100 * w['drop']:.2f}% of the footprint beyond what the video shows{_e(where)} (limit {100 * cov['limit']:.0f}%: a larger "
                      "drop means the simulated tissue tore, and the run fails)</p>")
+    scales = metrics.get("force_scales")
+    if isinstance(scales, dict):
+        parts.append(f"<h2>What sets E's scale</h2><p>{_e(force_scale_text(scales))}</p>")
     settle = metrics.get("settling")
     if isinstance(settle, dict) and settle.get("frames"):
         parts.append(f"<h2>Settling</h2><p>{_e(settling_text(settle))}</p>")

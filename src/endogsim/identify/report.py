@@ -30,7 +30,7 @@ from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
-from endogsim.evaluate.report_html import discretisation_text, settling_text, simulated_at_text
+from endogsim.evaluate.report_html import discretisation_text, force_scale_text, settling_text, simulated_at_text
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import observed_flow as estimate_observed_flow
 from endogsim.identify.optimize import IdentifyResult
@@ -134,6 +134,26 @@ def settling_record(problem: SimScene, settling_left: float) -> dict:
             "settled": bool(cells <= SETTLING_TOLERANCE), "tolerance_cells": SETTLING_TOLERANCE}
 
 
+def force_scale_record(problem: SimScene) -> dict:
+    """metrics.json's ``force_scales``: what gives E an absolute scale in this scene's simulations.
+
+    Kinematic instruments and held borders prescribe displacements, which alone fix nu and the ratios of E,
+    not E (DESIGN.md section 10): E is set against the tissue's weight, its inertia (against its damping) and
+    any applied force. An identified E holds for the values here; on a real video they are the scenario's
+    assumptions (docs/REAL_VIDEO.md section 3), and E moves with them. {"gravity_m_s2" [3] (the scene's
+    frame), "frame_dt_s", "damping_per_s" (grid velocity damping), "mass_scaling" (inertia multiplied by it;
+    weight and damping forces unchanged), "applied_forces", "impulses", "kinematic_instruments", "scales": those
+    present of "weight", "inertia", "applied force"}."""
+    sc, mpm = problem.scenario, problem.mpm
+    forces = [f for f in sc.forces if not f.impulse]
+    impulses = [f for f in sc.forces if f.impulse]
+    gravity = [float(v) for v in sc.gravity]
+    scales = (["weight"] if any(gravity) else []) + ["inertia"] + (["applied force"] if sc.forces else [])
+    return {"gravity_m_s2": gravity, "frame_dt_s": float(mpm.frame_dt), "damping_per_s": float(mpm.damping),
+            "mass_scaling": float(sc.mass_scaling), "applied_forces": len(forces), "impulses": len(impulses),
+            "kinematic_instruments": len(sc.colliders), "scales": scales}
+
+
 def material_errors(problem: SimScene, fld: MaterialField) -> dict | None:
     """RE of the deformable objects against ``scene.json``'s ground truth (every synthesized scene has it)."""
     if not problem.has_ground_truth:
@@ -232,6 +252,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
         "discretisation": discretisation_record(problem, config.refine),
+        "force_scales": force_scale_record(problem),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
                       for r in result.field.records},
@@ -263,7 +284,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
              f"{len(range(0, problem.num_frames, stride))} of {problem.num_frames} frames compared (stride {stride})",
              f"{result.iterations} iterations ({result.stopped}), best at iteration {result.best_iteration}, "
              f"{result.seconds:.1f} s",
-             f"simulated at {simulated_at_text(metrics['discretisation'])}"]
+             f"simulated at {simulated_at_text(metrics['discretisation'])}",
+             f"E's scale: {force_scale_text(metrics['force_scales'])}"]
     for r in result.field.records:
         init = result.init_field[r.object_id]
         kind = "rigid (frozen)" if r.rigid else f"{r.source}; from E {init.E:.4g} Pa, nu {init.nu:.3f}"

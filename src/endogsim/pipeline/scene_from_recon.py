@@ -132,6 +132,16 @@ class RealScenario:
             raise DataError(f"scenario.border_motion {self.border_motion!r} must be tracked|still")
         if not (math.isfinite(self.support_friction) and self.support_friction >= 0):
             raise DataError(f"scenario.support_friction {self.support_friction} must be a finite number >= 0")
+        if not (math.isfinite(self.gravity) and self.gravity >= 0):
+            raise DataError(f"scenario.gravity {self.gravity} m/s^2 must be a finite number >= 0")
+        direction = np.asarray(self.gravity_direction, float)
+        if direction.shape != (3,) or not np.isfinite(direction).all() or (self.gravity > 0 and not direction.any()):
+            raise DataError(f"scenario.gravity_direction {self.gravity_direction} must be three finite numbers, "
+                            "not all zero (frame 0's camera coordinates: +y is image down, +z along the view)")
+        if not (math.isfinite(self.damping) and self.damping >= 0):
+            raise DataError(f"scenario.damping {self.damping} 1/s must be a finite number >= 0")
+        if not (math.isfinite(self.mass_scaling) and self.mass_scaling >= 1):
+            raise DataError(f"scenario.mass_scaling {self.mass_scaling} must be a finite number >= 1")
 
 
 @dataclass

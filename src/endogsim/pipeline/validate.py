@@ -341,6 +341,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
             "prediction": scores["prediction"],
             "baselines": {k: scores[k] for k in methods if k != "prediction"},
             "materials": m["materials"], "identifiable": m.get("identifiable", {}), "intervals": m.get("intervals", {}),
+            "force_scales": m.get("force_scales"),
             "calibration": {"iterations": m.get("iterations"), "seconds": m.get("seconds"), "stopped": m.get("stopped"),
                             "seconds_per_iteration": (m["seconds"] / m["iterations"]) if m.get("iterations") else None,
                             "coverage": m.get("coverage")},
