@@ -333,13 +333,14 @@ def test_nu_slice_ends_where_the_optimum_leaves_the_search_box():
 
     ivs = parameter_intervals(params, {1: "liver"}, per_frame, box, True)
     nu_iv = ivs[1]
-    assert nu_iv.search_box == pytest.approx([0.0, nu_max])
     at_optimum = [nu for log10_E, nu in tried if log10_E == 5.0]
     assert max(at_optimum) == pytest.approx(nu_max, abs=1e-6)  # walked to the edge, not to 0.49
+    assert max(r[0] for r in nu_iv.slice) == pytest.approx(nu_max, abs=1e-6)
     # E (a flat loss) is not identifiable, so nu is sliced again at the ends of E's interval, the whole box: at
-    # its soft end every nu is reachable
+    # its soft end every nu is reachable, and nothing excludes one, so the profile's interval and box reach 0.49
     assert max(nu for log10_E, nu in tried if log10_E == 1.7) == pytest.approx(0.49, abs=1e-6)
-    assert nu_iv.interval == pytest.approx([0.0, nu_max])  # within the box at the optimum
+    assert nu_iv.partner_slices[0]["interval"] == pytest.approx([0.0, 0.49])
+    assert nu_iv.interval == pytest.approx([0.0, 0.49]) and nu_iv.search_box == pytest.approx([0.0, 0.49])
     # an optimum whose E is reachable at every nu keeps the whole box; one on the edge has no side above it
     assert reachable_nu_max(params, 0, lambda trial: ([1.7], [6.0])) == 0.49
     on_edge = nu_iv.best
@@ -678,6 +679,33 @@ def test_a_failing_task_stops_its_siblings_and_its_own_error_is_raised():
         run_independent([walk] + [lambda k=k: slow(k) for k in range(20)], workers=2, cancel=cancel)
     assert cancel.is_set() and len(ran) < 20  # the walk stopped, and the tasks not started were dropped
     assert run_independent([lambda k=k: k * k for k in range(5)], workers=3) == [0, 1, 4, 9, 16]
+
+
+def test_an_interval_across_an_undetermined_partner_reaches_the_search_box_at_the_partners_values():
+    """E's search box depends on nu (the simulator's stability: a stiffer tissue needs a lower nu), as on EndoNeRF
+    pulling, where E's box ended at 167 kPa at nu 0.47 and at 1e6 Pa at nu 0. A loss flat in both: nu's interval is
+    [0, 0.49], so E is sliced at nu = 0 too, where its box reaches 1e6 Pa; E's interval and search box are those
+    of the whole profile, not clipped to the box at the optimum's nu."""
+    import torch
+
+    eps = np.random.default_rng(5).normal(0.0, 1.0, 10)
+    eps -= eps.mean()  # every trial's loss differences sum to zero: flat in both parameters
+
+    def per_frame(trial):
+        x, nu = float(trial.log10_E.detach()[0]), float(trial.nu().detach()[0])
+        return {t: 1.0 + 0.01 * e * (x + nu) for t, e in enumerate(eps)}
+
+    params = _field().to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E.fill_(4.0)
+        params.nu_raw.fill_(float(nu_to_raw(0.47, 0.0, 0.49)))
+    E, nu = parameter_intervals(params, {1: "liver"}, per_frame, lambda trial: ([1.7], [6.0 - 2.0 * float(
+        trial.nu().detach()[0])]), True)
+    assert not E.identifiable and not nu.identifiable and nu.interval == pytest.approx([0.0, 0.49])
+    at = {round(p["at"], 6): p["interval"] for p in E.partner_slices}
+    assert at[0.0] == pytest.approx([10 ** 1.7, 1e6], rel=1e-5)  # at nu = 0 the box reaches 1e6 Pa, none excluded
+    assert E.slice and max(r[0] for r in E.slice) == pytest.approx(10 ** 5.06, rel=1e-6)  # at nu 0.47: 115 kPa
+    assert E.interval == pytest.approx([10 ** 1.7, 1e6], rel=1e-5) and E.search_box == E.interval
 
 
 def test_a_parameter_is_taken_over_the_interval_of_a_partner_the_video_does_not_determine():

@@ -26,12 +26,13 @@ A slice holds the other parameter at the optimum, so where the video does not de
 is then arbitrary: usually its prior) the slice answers a question nobody asked. The profile likelihood would let
 the partner go wherever the loss is least; a cheap version of it is taken instead: the parameter is sliced again
 with its partner at each end of the partner's statistical interval, and combined with the slice through the
-optimum by :func:`profiled` (a value lies inside when some slice does not exclude it; a side counts as
-significant only when it does in every slice). On the suite's ``impulse_paper`` at 1.5x (E kept at its prior,
-10 kPa, for a true 100 kPa) the slice through the optimum excluded the true nu 0.45 (interval [0.465, 0.49]),
-while at the upper end of E's interval, 809 kPa, every nu from 0 to 0.49 fitted better than the optimum
-(docs/IDENTIFICATION.md section 1). It costs two more slices (up to 16 simulations) per parameter whose partner
-is not identifiable, none where the video determines both.
+optimum by :func:`profiled` (a value lies inside when some slice does not exclude it, within that slice's own
+search box: at a lower nu, E's reaches higher; a side counts as significant only when it does in every slice).
+On the suite's ``impulse_paper`` at 1.5x (E kept at its prior, 10 kPa, for a true 100 kPa) the slice through
+the optimum excluded the true nu 0.45 (interval [0.465, 0.49]), while at the upper end of E's interval, 809 kPa,
+every nu from 0 to 0.49 fitted better than the optimum (docs/IDENTIFICATION.md section 1). It costs two more
+slices (up to 16 simulations) per parameter whose partner is not identifiable, none where the video determines
+both.
 
 A rise must also matter: a trial whose loss rises by less than ``min_relative_rise`` of the optimum's loss
 (identification's ``tol``, the relative change its optimiser counts as no progress) counts with at most the
@@ -122,7 +123,8 @@ class ParameterInterval:
         parameter: "E" (Pa) or "nu".
         best: the identified value.
         interval: [lo, hi] 90% interval (Pa for E), clipped to the search box.
-        search_box: [lo, hi] the values identification could reach.
+        search_box: [lo, hi] the values identification could reach (E's upper end depends on nu, and nu's on E:
+            with ``partner_slices``, the hull of the boxes at the partner's values sliced).
         identifiable: the loss rises significantly above its noise on both sides within the search box (and
             the first gradient is not zero).
         reason: one line saying why (or why not).
@@ -347,15 +349,16 @@ def identifiability(sl: Slice, first_gradient: float | None, span: str, signific
                    f"{' or '.join(flat)} the optimum within {span}")
 
 
-def profiled(center: Slice, partners: list[Slice], box: tuple[float, float]) -> Slice:
+def profiled(center: Slice, partners: list[Slice]) -> Slice:
     """One parameter's slice across its partner's values: ``center`` (the partner at the optimum) and
     ``partners`` (the same slice with the partner elsewhere: at the ends of its statistical interval), a coarse
     profile of the loss (module docstring). A value lies inside when some slice does not exclude it, so the
-    interval is the hull of the slices' intervals, clipped to ``box`` (the parameter's at the optimum); a side is
-    bounded, or significant, only where every slice is (a value is ruled out only when it is whatever the
-    partner). The records are ``center``'s (the partners' stay with them); the failures are all of them."""
+    interval is the hull of the slices' intervals, each within its own search box (E's reaches higher at a lower
+    nu, nu's at a lower E); a side is bounded, or significant, only where every slice is (a value is ruled out
+    only when it is whatever the partner). The records are ``center``'s (the partners' stay with them); the
+    failures are all of them."""
     every = [center, *partners]
-    interval = [max(box[0], min(s.interval[0] for s in every)), min(box[1], max(s.interval[1] for s in every))]
+    interval = [min(s.interval[0] for s in every), max(s.interval[1] for s in every)]
     bounded = tuple(all(s.bounded[i] for s in every) for i in range(2))
     significant = tuple(all(s.significant[i] for s in every) for i in range(2))
     return Slice(interval, bounded, significant, center.records, [f for s in every for f in s.failures])
@@ -654,11 +657,12 @@ def parameter_intervals(
         for down_there, up_there in zip(partners[::2], partners[1::2]):  # at the partner's lower end, its upper
             if down_there is not None:
                 at, box_there, _ = down_there
+                box = (min(box[0], box_there[0]), max(box[1], box_there[1]))  # the search box across the partner
                 others.append(slice_from_sides(best, box_there, threshold, stop, down_there[2], up_there[2]))
                 partner_slices.append({"partner": partner, "at": _value(partner, at),
                                        "interval": [to_value(v) for v in others[-1].interval],
                                        "slice": [[to_value(r[0])] + r[1:] for r in others[-1].records]})
-        sl = profiled(center, others, box)
+        sl = profiled(center, others)
         (lo, hi), records = sl.interval, sl.records
         g0 = first_gradient(slot, what)
         ok, reason = identifiability(sl, g0, "the search box", significance)
