@@ -402,6 +402,8 @@ def test_cli_run_and_validate_take_the_force_scales_and_refuse_bad_ones_before_a
     assert CliRunner().invoke(_app(), ["run", str(root), "--out", str(tmp_path / "d")]).exit_code == 0
     assert seen[0] == RealScenario(gravity_direction=(0.0, 0.0, 1.0), damping=10.0, mass_scaling=1.0)
     assert seen[1] == RealScenario()  # the scenario's own defaults where nothing is given
+    with pytest.raises(DataError, match="gravity_direction"):  # the Python API's check, for what the CLI parses
+        RealScenario(gravity_direction=("down", 0, 0))
 
 
 def test_cli_run_and_validate_take_the_optimiser_and_refuse_an_unknown_one_before_any_work(tmp_path, monkeypatch):

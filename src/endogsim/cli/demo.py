@@ -48,7 +48,7 @@ _FRICTION_HELP = ("Coulomb coefficient of the support behind the tissue: pressed
 #: ``--gravity``, ``--gravity-direction``, ``--damping`` and ``--mass-scaling`` of ``run`` and ``validate``: the
 #: scenario's force scales, which set E's scale (``RealScenario``; metrics.json ``force_scales``).
 _FORCE_SCALE_NOTE = (" It sets the scale of the E found: prescribed motion alone fixes nu and the ratios of E, not E "
-                     "(docs/REAL_VIDEO.md section 3).")
+                     "(docs/REAL_VIDEO.md sections 3 and 17).")
 _GRAVITY_HELP = "Gravity's magnitude (m/s^2; 0: none). Default 9.81." + _FORCE_SCALE_NOTE
 _GRAVITY_DIRECTION_HELP = ("Gravity's direction as x,y,z in frame 0's camera coordinates (+x image right, +y image "
                            "down, +z along the view), e.g. from the robot's kinematics. Default 0,1,0: the "

@@ -134,7 +134,10 @@ class RealScenario:
             raise DataError(f"scenario.support_friction {self.support_friction} must be a finite number >= 0")
         if not (math.isfinite(self.gravity) and self.gravity >= 0):
             raise DataError(f"scenario.gravity {self.gravity} m/s^2 must be a finite number >= 0")
-        direction = np.asarray(self.gravity_direction, float)
+        try:
+            direction = np.asarray(self.gravity_direction, float)
+        except (TypeError, ValueError):
+            direction = np.full(0, np.nan)
         if direction.shape != (3,) or not np.isfinite(direction).all() or (self.gravity > 0 and not direction.any()):
             raise DataError(f"scenario.gravity_direction {self.gravity_direction} must be three finite numbers, "
                             "not all zero (frame 0's camera coordinates: +y is image down, +z along the view)")
