@@ -140,7 +140,7 @@ def force_scale_record(problem: SimScene) -> dict:
     Kinematic instruments and held borders prescribe displacements, which alone fix nu and the ratios of E,
     not E (DESIGN.md section 10): E is set against the tissue's weight, its inertia (against its damping) and
     any applied force. An identified E holds for the values here; on a real video they are the scenario's
-    assumptions (docs/REAL_VIDEO.md section 3), and E moves with them. {"gravity_m_s2" [3] (the scene's
+    assumptions (docs/REAL_VIDEO.md sections 3 and 17), and E moves with them. {"gravity_m_s2" [3] (the scene's
     frame), "frame_dt_s", "damping_per_s" (grid velocity damping), "mass_scaling" (inertia multiplied by it;
     weight and damping forces unchanged), "applied_forces", "impulses", "kinematic_instruments", "scales": those
     present of "weight", "inertia", "applied force"}."""
