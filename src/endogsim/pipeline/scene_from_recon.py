@@ -130,21 +130,20 @@ class RealScenario:
             raise DataError(f"scenario.grasping {self.grasping!r} must be graspers|all|none")
         if self.border_motion not in ("tracked", "still"):
             raise DataError(f"scenario.border_motion {self.border_motion!r} must be tracked|still")
-        if not (math.isfinite(self.support_friction) and self.support_friction >= 0):
-            raise DataError(f"scenario.support_friction {self.support_friction} must be a finite number >= 0")
-        if not (math.isfinite(self.gravity) and self.gravity >= 0):
-            raise DataError(f"scenario.gravity {self.gravity} m/s^2 must be a finite number >= 0")
+        for name, unit, least in (("support_friction", "", 0), ("gravity", " m/s^2", 0), ("damping", " 1/s", 0),
+                                  ("mass_scaling", "", 1)):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= least):
+                raise DataError(f"scenario.{name} {value}{unit} must be a finite number >= {least}")
         try:
             direction = np.asarray(self.gravity_direction, float)
+            pointing = (direction.shape == (3,) and np.isfinite(direction).all()
+                        and (self.gravity == 0 or direction.any()))
         except (TypeError, ValueError):
-            direction = np.full(0, np.nan)
-        if direction.shape != (3,) or not np.isfinite(direction).all() or (self.gravity > 0 and not direction.any()):
+            pointing = False
+        if not pointing:
             raise DataError(f"scenario.gravity_direction {self.gravity_direction} must be three finite numbers, "
                             "not all zero (frame 0's camera coordinates: +y is image down, +z along the view)")
-        if not (math.isfinite(self.damping) and self.damping >= 0):
-            raise DataError(f"scenario.damping {self.damping} 1/s must be a finite number >= 0")
-        if not (math.isfinite(self.mass_scaling) and self.mass_scaling >= 1):
-            raise DataError(f"scenario.mass_scaling {self.mass_scaling} must be a finite number >= 1")
 
 
 @dataclass
