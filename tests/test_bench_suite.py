@@ -10,6 +10,7 @@ import pytest
 
 from endogsim.bench.suite import (
     RUNS,
+    check_coarser_than_ground_truth,
     interval_summary,
     object_results,
     run_suite,
@@ -237,6 +238,14 @@ def test_the_suite_refuses_to_identify_as_finely_as_its_ground_truth(scenes_dir,
     r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--refine", "2.5", "--scenes-dir",
                                  str(scenes_dir), "--work-dir", str(tmp_path / "w")])
     assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()
+    # the refined correction's level counts too: 1.5 x 1.5 = 2.25; without the correction 1.5 is allowed
+    with pytest.raises(EndoGSimError, match=r"--refined-correction 1.5 identifies tiny at least as finely \(2.25x\)"):
+        run_suite(["tiny"], scenes_dir, tmp_path / "w", refine=1.5)
+    r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--refine", "1.5", "--refined-correction",
+                                 "1.4", "--scenes-dir", str(scenes_dir), "--work-dir", str(tmp_path / "w")])
+    assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()
+    check_coarser_than_ground_truth(["tiny"], 1.5, None)
+    check_coarser_than_ground_truth(["tiny"], 1.0, 1.5)
 
 
 def test_the_suite_refuses_a_device_it_cannot_use_before_any_scene(tmp_path):

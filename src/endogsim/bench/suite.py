@@ -72,17 +72,23 @@ FULL_METHOD = run_key("prior", True)
 DEFAULT_ITERS = 10
 
 
-def check_coarser_than_ground_truth(scenes: Sequence[str], refine: float) -> None:
-    """Refuse identifying suite ``scenes`` refined ``refine`` times when that is at least as fine as their
-    ground truth was simulated (``ground_truth_refine``): a fit at the truth's own discretisation hides the
-    simulator's error (an inverse crime)."""
+def check_coarser_than_ground_truth(scenes: Sequence[str], refine: float,
+                                    refined_correction: float | None = None) -> None:
+    """Refuse identifying suite ``scenes`` refined ``refine`` times, or correcting the estimate to that refined
+    ``refined_correction`` times more, when that is at least as fine as their ground truth was simulated
+    (``ground_truth_refine``): a fit at the truth's own discretisation hides the simulator's error (an inverse
+    crime)."""
     from endogsim.synth.suite import scene_spec
 
-    as_fine = [s for s in scenes if refine >= scene_spec(s)["ground_truth_refine"]]
+    finest = refine * (refined_correction or 1.0)
+    as_fine = [s for s in scenes if finest >= scene_spec(s)["ground_truth_refine"]]
     if as_fine:
-        raise EndoGSimError(f"--refine {refine:g} identifies {', '.join(as_fine)} at least as finely as their ground "
-                            "truth was simulated: a fit at the truth's own discretisation hides the simulator's error "
-                            "(an inverse crime); use a factor below the scenes' ground_truth_refine")
+        what = f"--refine {refine:g}" + (f" with --refined-correction {refined_correction:g}" if refined_correction
+                                         else "")
+        raise EndoGSimError(f"{what} identifies {', '.join(as_fine)} at least as finely ({finest:g}x) as their "
+                            "ground truth was simulated: a fit at the truth's own discretisation hides the simulator's "
+                            "error (an inverse crime); use factors whose product lies below the scenes' "
+                            "ground_truth_refine (--refined-correction 0: no correction)")
 
 
 def _default_scenes() -> list[str]:
@@ -95,6 +101,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
+              refined_correction: float | None = 1.5,
               device: str = "cpu", fresh: bool = False) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications (or reuse their stored record); the unit
     of work of both paths.
@@ -116,6 +123,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
             suite's).
         refine: identify at the scene's identification discretisation refined by this factor
             (``IdentifyConfig.refine``); it must stay coarser than the ground truth's simulation.
+        refined_correction: the estimate's refined correction (``IdentifyConfig.refined_correction``; None:
+            none); ``refine`` times this must stay coarser than the ground truth's simulation too.
         device: identification's simulator and renderer ("cpu" or "cuda"; ``IdentifyConfig.device``). The
             ground truth is synthesized on the CPU either way.
         fresh: run the identifications even where ``work_dir/NAME/scene_result.json`` holds a record made with
@@ -135,7 +144,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
 
     if threads:
         torch.set_num_threads(threads)
-    check_coarser_than_ground_truth([name], refine)
+    check_coarser_than_ground_truth([name], refine, refined_correction)
     t0 = time.perf_counter()
     work = Path(work_dir) / name
     folder = ensure_scene(name, Path(scenes_dir), frames)
@@ -148,7 +157,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
                              "runs": [p[0] for p in plan], "iters": iters, "frames": frames,
                              "render_scale": render_scale, "fid_weights": tree_digest(fid_weights) if fid_weights
                              else None, "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
-                             "device": device})
+                             "refined_correction": refined_correction, "device": device})
     if not fresh and record_file.is_file():
         try:
             record = json.loads(record_file.read_text())
@@ -167,7 +176,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     for key, init, on, glob in plan:
         cfg = IdentifyConfig(iters=iters if on else 0, render_scale=render_scale, global_material=glob,
                              intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer,
-                             refine=refine, device=device)
+                             refine=refine, refined_correction=refined_correction, device=device)
         t_run = time.perf_counter()
         m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
@@ -298,6 +307,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
+              refined_correction: float | None = 1.5,
               device: str = "cpu", fresh: bool = False, log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
@@ -315,6 +325,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             section 4).
         refine: identify at each scene's identification discretisation refined by this factor (default 1;
             below the ground truth's 2).
+        refined_correction: the estimates' refined correction (default 1.5, ``IdentifyConfig``'s; None:
+            none); ``refine`` times this must stay below the ground truth's 2 too.
         device: identification's device ("cpu" or "cuda"): the same computation in another order of
             floating-point sums.
         fresh: run every scene again, even one whose stored record this run could reuse (module docstring).
@@ -340,14 +352,14 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
 
     # bad options, and a device this machine lacks, are refused before any scene (the config does not check
     # the device: that needs Warp)
-    IdentifyConfig(optimizer=optimizer, refine=refine)
+    IdentifyConfig(optimizer=optimizer, refine=refine, refined_correction=refined_correction)
     resolve_device(device)
-    check_coarser_than_ground_truth(scenes, refine)  # every scene's, before the first one's work
+    check_coarser_than_ground_truth(scenes, refine, refined_correction)  # every scene's, before the first one's work
     n_it = iters if iters is not None else (2 if quick else DEFAULT_ITERS)
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
                fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
-               optimizer=optimizer, refine=refine, device=device, fresh=fresh)
+               optimizer=optimizer, refine=refine, refined_correction=refined_correction, device=device, fresh=fresh)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -366,7 +378,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
                                                            "code)" if r["reused"] else ""))
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
-                         "time_budget": time_budget, "optimizer": optimizer, "refine": refine, "device": device},
+                         "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
+                         "refined_correction": refined_correction, "device": device},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 

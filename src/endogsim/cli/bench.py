@@ -141,6 +141,10 @@ def register(bench_app: typer.Typer) -> None:
         refine: float = typer.Option(1.0, "--refine", help="Identify at the scenes' identification discretisation "
                                      "refined by this factor (grid x F, particle spacing / F, substeps x F; up to "
                                      "F^4 the time). Below 2, the ground truth's."),
+        refined_correction: float = typer.Option(1.5, "--refined-correction",
+                                                 help="Correct what the video determines to the discretisation "
+                                                      "refined this many times more (0: none). Times --refine, "
+                                                      "below 2, the ground truth's."),
         device: str = typer.Option("cpu", "--device", help="Identification's simulator and renderer: cpu | cuda "
                                    "(the ground truth is synthesized on the CPU)."),
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
@@ -160,8 +164,8 @@ def register(bench_app: typer.Typer) -> None:
         res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
                         frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
                         ray_address=ray_address, threads=threads, runs=runs.split(",") if runs else None,
-                        time_budget=time_budget, optimizer=optimizer, refine=refine, device=device,
-                        fresh=fresh, log=console.print)
+                        time_budget=time_budget, optimizer=optimizer, refine=refine,
+                        refined_correction=refined_correction or None, device=device, fresh=fresh, log=console.print)
         for t in res["tables"].values():
             print_table(t["title"], t["columns"], t["rows"])
             if t.get("note"):

@@ -53,6 +53,9 @@ def register(app: typer.Typer) -> None:
                                                  "again on a grid this fraction as fine (0: not measured, the "
                                                  "interval holds the video's noise alone)."),
         refine: float = typer.Option(_DEFAULT.refine, "--refine", help=REFINE_HELP),
+        refined_correction: float = typer.Option(_DEFAULT.refined_correction, "--refined-correction",
+                                                 help="Correct what the video determines to the discretisation "
+                                                      "refined this many times (forward simulations; 0: none)."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
@@ -62,14 +65,15 @@ def register(app: typer.Typer) -> None:
         """Refine E and nu of the deformable objects so the simulated, rendered scene matches the video
         (appearance and optical flow). Writes identified materials, metrics.json, plots, a video, a summary."""
         from endogsim.cli.common import console, print_table, progress, with_interval
-        from endogsim.evaluate.report_html import force_scale_text
+        from endogsim.evaluate.report_html import correction_text, force_scale_text
         from endogsim.identify import run_identify
 
         cfg = IdentifyConfig(loss=loss, grad_mode=grad_mode, iters=iters, global_material=global_material, lr=lr,
                              optimizer=optimizer,
                              render_scale=render_scale, frames=frames, frame_stride=frame_stride,
                              flow=FlowConfig(flow, flow_weights), device=device, **time_budget_option(time_budget),
-                             coarse_factor=coarse_factor or None, refine=refine)
+                             coarse_factor=coarse_factor or None, refine=refine,
+                             refined_correction=refined_correction or None)
         with progress() as bar:
             task = bar.add_task("identify", total=max(iters, 1))
             trials: list = []  # the interval trials' task, added when the iterations end (their count is open)
@@ -116,5 +120,7 @@ def register(app: typer.Typer) -> None:
                       ("RE mean", m["re_mean"])] + scores
         print_table("Scores", ["metric", "value"], scores)
         console.print(f"E's scale: {force_scale_text(m['force_scales'])}")
+        if m.get("refined_correction") is not None:
+            console.print(f"refined correction: {correction_text(m['refined_correction'])}")
         console.print(f"wrote {out}")
 

@@ -190,6 +190,20 @@ def simulated_at_text(d: dict) -> str:
             f"{d['substeps']} substeps a frame ({d['refine']:g}x the scene's identification discretisation)")
 
 
+def correction_text(d: dict) -> str:
+    """'sheet E 2421 -> 1960 Pa, sheet nu 0.400 -> 0.423 at grid 74 (...): the loss there 0.04801 -> 0.04402
+    (2 steps, converged)' from metrics.json's ``refined_correction`` record
+    (:func:`endogsim.identify.report.correction_record`)."""
+    moves = [f"{name} {10 ** a:.4g} -> {10 ** b:.4g} Pa" if name.endswith(" E") else f"{name} {a:.3f} -> {b:.3f}"
+             for name, a, b in zip(d["parameters"], d["before"], d["after"])]
+    losses = d["refined_loss"]
+    if not d["applied"]:
+        return (f"{d['factor']:g}x the grid: no step lowered the loss there ({losses[0]:.5g}; {d['stopped']}); the "
+                f"materials stay as identified")
+    return (f"{', '.join(moves)}, for {simulated_at_text(d['discretisation'])}: its loss {losses[0]:.5g} -> "
+            f"{losses[-1]:.5g} ({len(losses) - 1} step{'s' if len(losses) > 2 else ''}, {d['stopped']})")
+
+
 def force_scale_text(d: dict) -> str:
     """'weight (gravity 9.81 m/s^2 along (0, 1, 0)) and inertia (frames 33.3 ms apart, masses x4, damping
     100/s); ...' from metrics.json's ``force_scales`` record (:func:`endogsim.identify.report.force_scale_record`)."""
@@ -322,7 +336,9 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
              f'{_e(metrics.get("iterations"))} iterations ({_e(metrics.get("stopped"))}), '
              f'{_fmt(metrics.get("seconds"), 3)} s'
              + (f'; simulated at {_e(simulated_at_text(metrics["discretisation"]))}'
-                if isinstance(metrics.get("discretisation"), dict) else "") + '</p>']
+                if isinstance(metrics.get("discretisation"), dict) else "")
+             + (f'; corrected to a refined discretisation: {_e(correction_text(metrics["refined_correction"]))}'
+                if isinstance(metrics.get("refined_correction"), dict) else "") + '</p>']
 
     # Videos side by side.
     vids = []

@@ -15,6 +15,9 @@ identification discretisation simulates within ``max_substeps`` per frame (times
 the substeps of every rollout follow the CFL rule); nu in the sigmoid's (lo, hi). An initial material
 given explicitly beyond that bound is refused with a message giving it.
 
+After the intervals, the parameters whose value the video gave are corrected to a refined discretisation by
+forward simulations there (``IdentifyConfig.refined_correction``; :mod:`endogsim.identify.refined_correction`).
+
 Robustness: the iterate with the lowest loss is kept (not the last); the run stops early when the loss has
 not improved by a relative ``tol`` for ``patience`` iterations, or when for ``stationary_patience``
 iterations in a row its gradient could not change it by ``tol`` even over a whole unit step (a stationary,
@@ -51,12 +54,13 @@ from endogsim.identify.loss import (
     make_observations,
     observed_flow,
 )
+from endogsim.identify.refined_correction import Correction, correct_to_refined, shifted_interval
 from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord, nu_to_raw
 from endogsim.physics import SimResult, max_stable_E
 from endogsim.registry import Registry
-from endogsim.scene.folder import SimScene, coarsened
+from endogsim.scene.folder import SimScene, rediscretised
 from endogsim.scene.forward import (
     Rendered,
     Simulations,
@@ -175,6 +179,10 @@ class IdentifyResult:
             intervals' last trials ran, else None.
         simulations: the iterations' simulations of the initial and the best iterate's materials (this
             process's iterations only): a field with the same materials is evaluated without simulating it again.
+        correction: the refined correction's record (:mod:`endogsim.identify.refined_correction`; None: none
+            was made: ``config.refined_correction`` None, or no parameter the video determines).
+        refined: the refined scene ``field`` belongs to after a correction that moved it (None: the
+            identification's own discretisation); ``refined_simulations`` holds its simulation there.
     """
 
     field: MaterialField
@@ -189,6 +197,9 @@ class IdentifyResult:
     intervals: list[ParameterInterval] = field(default_factory=list)
     evaluation: object | None = None
     simulations: Simulations = field(default_factory=Simulations)
+    correction: Correction | None = None
+    refined: SimScene | None = None
+    refined_simulations: Simulations = field(default_factory=Simulations)
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
@@ -261,7 +272,8 @@ def _signature(problem: SimScene, init: MaterialField, config: IdentifyConfig, r
     cfg.pop("iters", None)  # a resumed run may be given a larger budget
     cfg.pop("time_budget", None)
     cfg.pop("device", None)
-    cfg.pop("coarse_factor", None)  # measured after the optimisation, which it does not change
+    for after in ("coarse_factor", "refined_correction", "correction_steps"):  # used after the optimisation,
+        cfg.pop(after, None)  # which they do not change
     return {"scene": _scene_name(problem.folder, run_dir), "frames": problem.num_frames, "config": cfg,
             "init": init.to_json()["objects"]}
 
@@ -388,6 +400,22 @@ class _ParameterVector:
         return g_E, torch.as_tensor(grad[self.M:], dtype=torch.float64) * (hi - lo) * s * (1 - s)
 
 
+def side_by_side(problem: SimScene, init_field: MaterialField, vector: _ParameterVector, obs: Observations, camera,
+                 config: IdentifyConfig) -> Callable[[list[np.ndarray]], list[Evaluation]]:
+    """thetas -> their :class:`Evaluation` on ``problem``, simulated side by side (the first one alone: Warp builds
+    its kernels on a scene's first simulation)."""
+    warmed = []
+
+    def evaluate(thetas: list[np.ndarray]) -> list[Evaluation]:
+        tasks = [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, camera, config)
+                 for t in thetas]
+        first = [] if warmed or not tasks else [tasks.pop(0)()]
+        warmed.append(True)
+        return first + run_independent(tasks, problem.independent_simulations())
+
+    return evaluate
+
+
 def stationary(leaves: list[torch.Tensor], loss: float, tol: float) -> bool:
     """True when no parameter's gradient (``leaves``' .grad, per decade of E or raw unit of nu) could change
     the loss by a relative ``tol`` over a unit step: the loss is flat where the optimiser stands."""
@@ -461,18 +489,11 @@ def identify(
     groups = [{"params": [params.log10_E], "lr_scale": 1.0}]
     if cfg.optimize_nu:
         groups.append({"params": [params.nu_raw], "lr_scale": cfg.lr_nu / cfg.lr})
-    vector, workers = _ParameterVector(problem, init_field, cfg), problem.independent_simulations()
+    vector = _ParameterVector(problem, init_field, cfg)
     lm = None
     if cfg.optimizer == "lm":
-        warmed = []  # Warp builds its kernels on a scene's first simulation: that one runs alone
-
-        def simulate_side_by_side(thetas: list[np.ndarray]) -> list[Evaluation]:
-            tasks = [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, cam, cfg) for t in thetas]
-            first = [] if warmed or not tasks else [tasks.pop(0)()]
-            warmed.append(True)
-            return first + run_independent(tasks, workers)
-
-        opt = lm = LevenbergMarquardt(simulate_side_by_side, vector.box, vector.steps(), cfg.tol, cfg.lm_damping)
+        opt = lm = LevenbergMarquardt(side_by_side(problem, init_field, vector, obs, cam, cfg), vector.box,
+                                      vector.steps(), cfg.tol, cfg.lm_damping)
     else:
         opt = OPTIMIZERS.get(cfg.optimizer)(groups, cfg.lr)
     cfg.stride(problem.num_frames)  # a stride that leaves one frame to compare is refused before any work
@@ -610,7 +631,7 @@ def identify(
             coarse, coarse_evaluate = None, None
             if cfg.coarse_factor is not None:
                 try:
-                    coarse = coarsened(problem, cfg.coarse_factor)
+                    coarse = rediscretised(problem, cfg.coarse_factor)
                 except EndoGSimError as e:  # e.g. a tissue thinner than a coarse particle: intervals without it
                     notes.append(f"the discretisation error was not measured: the scene at {cfg.coarse_factor:g}x "
                                  f"its grid could not be built ({e})")
@@ -639,12 +660,69 @@ def identify(
                 then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
                 min_relative_rise=cfg.tol)
         ident = identified_field(init_field, final, intervals)
+    correction, refined, refined_simulations = None, None, Simulations()
+    if best is not None and cfg.refined_correction is not None:
+        ident, intervals, correction, refined, refined_simulations = corrected_to_refined(
+            problem, init_field, ident, intervals, obs, cam, cfg, notes)
     evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
                           best_loss=math.nan if best is None else float(best["loss"]),
                           iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
-                          evaluation=evaluation, simulations=simulations)
+                          evaluation=evaluation if refined is None else None, simulations=simulations,
+                          correction=correction, refined=refined, refined_simulations=refined_simulations)
+
+
+def corrected_to_refined(problem: SimScene, init_field: MaterialField, ident: MaterialField,
+                         intervals: list[ParameterInterval], obs: Observations, camera, config: IdentifyConfig,
+                         notes: list[str]) -> tuple[MaterialField, list[ParameterInterval], Correction | None,
+                                                    SimScene | None, Simulations]:
+    """The identified field corrected to the discretisation refined ``config.refined_correction`` times
+    (:mod:`endogsim.identify.refined_correction`): the parameters whose value the video gave (identified, a
+    one-sided estimate, or every parameter without intervals) move, their intervals with them, and their sources
+    follow the moved intervals (:func:`identified_field`).
+
+    Returns:
+        (the field, the intervals, the correction's record (None: no parameter to move, or the refined scene
+        could not be built: ``notes`` says why), the refined scene the field now belongs to (None: the field is
+        ``ident``, no step lowered the refined loss or none was tried), the refined simulation of the field)
+    """
+    vector = _ParameterVector(problem, init_field, config)
+    here = ident.to_params(global_material=config.global_material, nu_bounds=config.nu_bounds)
+    theta = vector.theta(here)
+    kinds = ["E"] * vector.M + (["nu"] * vector.M if config.optimize_nu else [])
+    slots = {here.slot(o): o for o in reversed(here.object_ids)}  # each slot's first object names it
+    by = {(iv.object_id, iv.parameter): iv for iv in intervals}
+    free = np.array([source_of(by.get((slots[k % vector.M], what)), getattr(init_field[slots[k % vector.M]], what))
+                     != NOT_IDENTIFIABLE for k, what in enumerate(kinds)])
+    if not free.any():
+        return ident, intervals, None, None, Simulations()
+    try:
+        refined = rediscretised(problem, config.refined_correction)
+    except EndoGSimError as e:  # e.g. too many particles for this machine: the field stays as identified
+        notes.append(f"no refined correction: the scene at {config.refined_correction:g}x its grid could not be "
+                     f"built ({e})")
+        return ident, intervals, None, None, Simulations()
+    t0 = time.perf_counter()
+    corrected, ev, loss, losses, stopped = correct_to_refined(
+        theta, free, side_by_side(problem, init_field, vector, obs, camera, config),
+        side_by_side(refined, init_field, vector, obs, camera, config), vector.box, vector.steps(),
+        config.correction_steps, config.tol)
+    record = Correction(factor=config.refined_correction,
+                        parameters=[f"{problem.labels[slots[k % vector.M]].name} {what}"
+                                    for k, what in enumerate(kinds) if free[k]],
+                        before=theta[free].tolist(), after=corrected[free].tolist(), loss=loss, refined_loss=losses,
+                        stopped=stopped, seconds=time.perf_counter() - t0)
+    if len(losses) == 1:
+        notes.append(f"refined correction: no step lowered the loss at {config.refined_correction:g}x the grid "
+                     f"({stopped}); the materials stay as identified")
+        return ident, intervals, record, None, Simulations()
+    moved = [shifted_interval(iv, float(corrected[k] - theta[k])) if free[k] else iv
+             for iv in intervals for k in [here.slot(iv.object_id) + (vector.M if iv.parameter == "nu" else 0)]]
+    params = vector.params(corrected)
+    simulations = Simulations()
+    simulations.keep("corrected", init_field.simulator_materials(params), ev.sim)
+    return identified_field(init_field, params, moved), moved, record, refined, simulations
 
 
 def remembered_trials(evaluate: Callable[[MaterialParams], dict[int, float]], tag: tuple, trials: dict,
@@ -684,6 +762,16 @@ NOT_IDENTIFIABLE = "prior (not identifiable from this video)"
 ONE_SIDED = "estimate (bounded on one side by this video, whose noise alone excludes the prior)"
 
 
+def source_of(iv: ParameterInterval | None, prior: float) -> str:
+    """Where the identified field takes a parameter from, given its interval (None: none measured) and its
+    initial value: "identified", :data:`ONE_SIDED` (both: the estimate) or :data:`NOT_IDENTIFIABLE` (the
+    initial value; :func:`identified_field` says when)."""
+    if iv is None or iv.identifiable:
+        return "identified"
+    lo, hi = iv.statistical_interval or iv.interval
+    return NOT_IDENTIFIABLE if lo <= prior <= hi else ONE_SIDED
+
+
 def identified_field(init: MaterialField, final: MaterialParams, intervals: list[ParameterInterval]) -> MaterialField:
     """The identified field: every deformable object's E and nu from ``final`` where the video determines
     them (``intervals``; all of them without intervals). A parameter it does not determine keeps its initial
@@ -701,15 +789,8 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
             prior = init[r.object_id]
             values, labels = {}, {}
             for name in ("E", "nu"):
-                iv, estimate, kept = by.get((sid, name)), getattr(r, name), getattr(prior, name)
-                if iv is None or iv.identifiable:
-                    values[name], labels[name] = estimate, "identified"
-                    continue
-                lo, hi = iv.statistical_interval or iv.interval
-                if lo <= kept <= hi:
-                    values[name], labels[name] = kept, NOT_IDENTIFIABLE
-                else:
-                    values[name], labels[name] = estimate, ONE_SIDED
+                labels[name] = source_of(by.get((sid, name)), getattr(prior, name))
+                values[name] = getattr(prior if labels[name] == NOT_IDENTIFIABLE else r, name)
             if labels["E"] == labels["nu"]:
                 source = labels["E"]
             else:

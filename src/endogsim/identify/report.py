@@ -30,7 +30,13 @@ from endogsim.evaluate.flow_metrics import epe as epe_metric
 from endogsim.evaluate.image_metrics import psnr, ssim
 from endogsim.evaluate.material_metrics import scene_relative_errors
 from endogsim.evaluate.plots import plot_loss, plot_parameters
-from endogsim.evaluate.report_html import discretisation_text, force_scale_text, settling_text, simulated_at_text
+from endogsim.evaluate.report_html import (
+    correction_text,
+    discretisation_text,
+    force_scale_text,
+    settling_text,
+    simulated_at_text,
+)
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.loss import observed_flow as estimate_observed_flow
 from endogsim.identify.optimize import IdentifyResult
@@ -123,6 +129,17 @@ def discretisation_record(problem: SimScene, refine: float) -> dict:
     s = problem.settings
     return {"refine": float(refine), "grid": int(s.grid), "cell_m": problem.scenario.box.size / s.grid,
             "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps)}
+
+
+def correction_record(result: IdentifyResult, refine: float) -> dict | None:
+    """metrics.json's ``refined_correction``: :class:`~endogsim.identify.refined_correction.Correction`'s
+    record, with ``applied`` (whether it moved the materials) and the refined ``discretisation``
+    (:func:`discretisation_record`; None where the correction took no step). None: no correction was made."""
+    c = result.correction
+    if c is None:
+        return None
+    at = None if result.refined is None else discretisation_record(result.refined, refine * c.factor)
+    return {**c.to_json(), "applied": result.refined is not None, "discretisation": at}
 
 
 def settling_record(problem: SimScene, settling_left: float) -> dict:
@@ -228,9 +245,11 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
 
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    # "refine": the discretisation the field belongs to; `endogsim simulate` simulates it there by default
+    # "refine": the discretisation the field belongs to (the refined one after a correction that moved it);
+    # `endogsim simulate` simulates it there by default
+    refine = config.refine * (result.correction.factor if result.refined is not None else 1.0)
     result.field.meta = {**result.field.meta, "identified_from": str(problem.folder), "init": init_name,
-                         "refine": float(config.refine)}
+                         "refine": float(refine)}
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)
@@ -238,8 +257,9 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     # The observed flow (pulling: 41 MB) is read only for an evaluation still to make.
     to_evaluate = evaluate_init or not isinstance(ev, Evaluation)
     obs_flow = reference_observed_flow(problem, config, run) if to_evaluate else None
-    if not isinstance(ev, Evaluation):
-        ev = evaluate_field(problem, result.field, obs_flow, result.simulations)
+    if not isinstance(ev, Evaluation):  # where the field belongs
+        ev = (evaluate_field(problem, result.field, obs_flow, result.simulations) if result.refined is None else
+              evaluate_field(result.refined, result.field, obs_flow, result.refined_simulations))
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {
@@ -253,6 +273,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
         "discretisation": discretisation_record(problem, config.refine),
         "force_scales": force_scale_record(problem),
+        "refined_correction": correction_record(result, config.refine),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
                       for r in result.field.records},
@@ -286,6 +307,8 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
              f"{result.seconds:.1f} s",
              f"simulated at {simulated_at_text(metrics['discretisation'])}",
              f"E's scale: {force_scale_text(metrics['force_scales'])}"]
+    if metrics["refined_correction"] is not None:
+        lines.append(f"refined correction: {correction_text(metrics['refined_correction'])}")
     for r in result.field.records:
         init = result.init_field[r.object_id]
         kind = "rigid (frozen)" if r.rigid else f"{r.source}; from E {init.E:.4g} Pa, nu {init.nu:.3f}"

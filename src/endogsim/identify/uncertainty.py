@@ -146,6 +146,9 @@ class ParameterInterval:
             "at": its value (Pa for E), "interval": [lo, hi] this slice's, "slice": [[value, Delta L, SE, z],
             ...]}]; empty where none was taken. ``interval``, ``statistical_interval`` and ``identifiable``
             take them in.
+        correction: how far the refined correction moved the estimate and both intervals (decades for E, units
+            of nu; :func:`~endogsim.identify.refined_correction.shifted_interval`); 0: not moved. ``slice`` and
+            ``discretisation`` stay where they were measured.
     """
 
     object_id: int
@@ -164,6 +167,7 @@ class ParameterInterval:
     statistical_interval: list[float] | None = None
     discretisation: dict | None = None
     partner_slices: list[dict] = field(default_factory=list)
+    correction: float = 0.0
 
     def to_json(self) -> dict:
         return asdict(self)

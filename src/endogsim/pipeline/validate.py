@@ -279,6 +279,9 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         calibrated = MaterialField.load(out / "calibrate" / "materials_identified.json")
         # The calibration's own starting field: an MLLM asked again could answer otherwise.
         prior = MaterialField.load(out / "calibrate" / "materials_init.json")
+        refine = float(calibrated.meta.get("refine", ident_cfg.refine))
+        if refine != ident_cfg.refine:  # corrected to a refined discretisation: both predictions are made there
+            scene = load_sim_scene(out / "scene", device=ident_cfg.device, refine=refine)
 
         log("predicting the held-out frames")
         cam = scene.camera.scaled(cfg.eval_scale)

@@ -45,7 +45,7 @@ from endogsim.scene.particles import particles_from_scene_gaussians, scenario_fo
 from endogsim.scene.schema import IMAGES_PATTERN, SceneSpec, SimSettings, load_scene_spec
 from endogsim.scene.tracks import TissueTracks, read_tissue_tracks
 
-__all__ = ["SimScene", "coarsened", "identification_settings", "load_sim_scene", "read_observations"]
+__all__ = ["SimScene", "identification_settings", "load_sim_scene", "read_observations", "rediscretised"]
 
 
 @dataclass
@@ -264,11 +264,12 @@ def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = 
                            field_of_view=fov)
 
 
-def coarsened(scene: SimScene, factor: float) -> SimScene:
-    """``scene`` read again from its folder at a coarser discretisation: its grid times ``factor`` (< 1),
-    the particle spacing and the substeps scaled with it (:func:`endogsim.scene.discretisation.refine`);
-    the same frames, camera, Gaussians and scenario. Identification's discretisation-error estimate
-    (:func:`endogsim.identify.uncertainty.discretisation_error`) compares the two."""
+def rediscretised(scene: SimScene, factor: float) -> SimScene:
+    """``scene`` read again from its folder at another discretisation: its grid times ``factor``, the particle
+    spacing and the substeps scaled with it (:func:`endogsim.scene.discretisation.refine`); the same frames,
+    camera, Gaussians and scenario. Identification's discretisation-error estimate
+    (:func:`endogsim.identify.uncertainty.discretisation_error`, ``factor`` < 1) and its refined correction
+    (:mod:`endogsim.identify.refined_correction`, ``factor`` > 1) compare the two."""
     sc = scene.spec.scenario
     settings = refine(scene.settings, scene.spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
     return load_sim_scene(scene.folder, scene.num_frames, scene.mpm.device, settings=settings)
