@@ -86,6 +86,9 @@ def test_run_resumes_after_an_interrupted_stage_and_reports(tiny_truth, tmp_path
     # the stage's seconds are its wall time, not metrics.json's seconds of its iterations
     ident = state["stages"]["identify"]
     assert ident["seconds"] >= ident["optimisation_seconds"] > 0
+    # the simulate stage simulates the identified materials where they belong (1.5x after a refined correction)
+    meta = json.loads((tmp_path / "identify" / "materials_identified.json").read_text())["meta"]
+    assert state["stages"]["simulate"]["summary"]["discretisation"]["refine"] == meta["refine"]
     html = Path(state["stages"]["report"]["report"])
     checker = _TagChecker()
     checker.feed(html.read_text())

@@ -223,8 +223,10 @@ def _run_stages(data: Path, out: Path, cfg: PipelineConfig, truth: str | Path | 
             return {"skipped": True}
         from endogsim.pipeline.simulate import simulate_interaction
 
+        # at the discretisation the materials belong to: the identification's, or the refined one a correction
+        # moved them to
         summary = simulate_interaction(out / "scene", cfg.interaction, out / "identify" / "materials_identified.json",
-                                       out / "simulate", device=cfg.identify.device, refine=cfg.identify.refine)
+                                       out / "simulate", device=cfg.identify.device)
         return {"interaction": cfg.interaction, "summary": summary}
 
     def report_stage() -> dict:
