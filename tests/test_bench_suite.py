@@ -240,7 +240,7 @@ def test_the_suite_refuses_to_identify_as_finely_as_its_ground_truth(scenes_dir,
     assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()
     # the refined correction's level counts too: 1.5 x 1.5 = 2.25; without the correction 1.5 is allowed
     with pytest.raises(EndoGSimError, match=r"--refined-correction 1.5 identifies tiny at least as finely \(2.25x\)"):
-        run_suite(["tiny"], scenes_dir, tmp_path / "w", refine=1.5)
+        run_suite(["tiny"], scenes_dir, tmp_path / "w", refine=1.5, refined_correction=1.5)
     r = CliRunner().invoke(app, ["bench", "suite", "--scenes", "tiny", "--refine", "1.5", "--refined-correction",
                                  "1.4", "--scenes-dir", str(scenes_dir), "--work-dir", str(tmp_path / "w")])
     assert r.exit_code == 2 and "inverse crime" in r.output and not (tmp_path / "w").exists()

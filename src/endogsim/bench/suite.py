@@ -101,7 +101,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              refined_correction: float | None = 1.5,
+              refined_correction: float | None = None,
               device: str = "cpu", fresh: bool = False) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications (or reuse their stored record); the unit
     of work of both paths.
@@ -307,7 +307,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              refined_correction: float | None = 1.5,
+              refined_correction: float | None = None,
               device: str = "cpu", fresh: bool = False, log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
@@ -325,8 +325,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
             section 4).
         refine: identify at each scene's identification discretisation refined by this factor (default 1;
             below the ground truth's 2).
-        refined_correction: the estimates' refined correction (default 1.5, ``IdentifyConfig``'s; None:
-            none); ``refine`` times this must stay below the ground truth's 2 too.
+        refined_correction: the estimates' refined correction (``IdentifyConfig.refined_correction``; default
+            None: none); ``refine`` times this must stay below the ground truth's 2 too.
         device: identification's device ("cpu" or "cuda"): the same computation in another order of
             floating-point sums.
         fresh: run every scene again, even one whose stored record this run could reuse (module docstring).

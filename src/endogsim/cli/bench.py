@@ -141,10 +141,10 @@ def register(bench_app: typer.Typer) -> None:
         refine: float = typer.Option(1.0, "--refine", help="Identify at the scenes' identification discretisation "
                                      "refined by this factor (grid x F, particle spacing / F, substeps x F; up to "
                                      "F^4 the time). Below 2, the ground truth's."),
-        refined_correction: float = typer.Option(1.5, "--refined-correction",
+        refined_correction: float = typer.Option(0.0, "--refined-correction",
                                                  help="Correct what the video determines to the discretisation "
-                                                      "refined this many times more (0: none). Times --refine, "
-                                                      "below 2, the ground truth's."),
+                                                      "refined this many times more, e.g. 1.5 (0, the default: "
+                                                      "none). Times --refine, below 2, the ground truth's."),
         device: str = typer.Option("cpu", "--device", help="Identification's simulator and renderer: cpu | cuda "
                                    "(the ground truth is synthesized on the CPU)."),
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
