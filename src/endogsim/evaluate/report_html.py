@@ -198,8 +198,8 @@ def correction_text(d: dict) -> str:
              for name, a, b in zip(d["parameters"], d["before"], d["after"])]
     losses = d["refined_loss"]
     if not d["applied"]:
-        return (f"{d['factor']:g}x the grid: no step lowered the loss there ({losses[0]:.5g}; {d['stopped']}); the "
-                f"materials stay as identified")
+        return (f"{d['factor']:g}x the grid: no step taken ({d['stopped']}; the loss there {losses[0]:.5g}); the "
+                "materials stay as identified")
     return (f"{', '.join(moves)}, for {simulated_at_text(d['discretisation'])}: its loss {losses[0]:.5g} -> "
             f"{losses[-1]:.5g} ({len(losses) - 1} step{'s' if len(losses) > 2 else ''}, {d['stopped']})")
 

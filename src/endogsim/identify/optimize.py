@@ -663,7 +663,7 @@ def identify(
     correction, refined, refined_simulations = None, None, Simulations()
     if best is not None and cfg.refined_correction is not None:
         ident, intervals, correction, refined, refined_simulations = corrected_to_refined(
-            problem, init_field, ident, intervals, obs, cam, cfg, notes)
+            problem, init_field, vector, ident, intervals, obs, cam, cfg, notes)
     evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
@@ -673,10 +673,11 @@ def identify(
                           correction=correction, refined=refined, refined_simulations=refined_simulations)
 
 
-def corrected_to_refined(problem: SimScene, init_field: MaterialField, ident: MaterialField,
-                         intervals: list[ParameterInterval], obs: Observations, camera, config: IdentifyConfig,
-                         notes: list[str]) -> tuple[MaterialField, list[ParameterInterval], Correction | None,
-                                                    SimScene | None, Simulations]:
+def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _ParameterVector,
+                         ident: MaterialField, intervals: list[ParameterInterval], obs: Observations, camera,
+                         config: IdentifyConfig, notes: list[str],
+                         ) -> tuple[MaterialField, list[ParameterInterval], Correction | None, SimScene | None,
+                                    Simulations]:
     """The identified field corrected to the discretisation refined ``config.refined_correction`` times
     (:mod:`endogsim.identify.refined_correction`): the parameters whose value the video gave (identified, a
     one-sided estimate, or every parameter without intervals) move, their intervals with them, and their sources
@@ -685,9 +686,8 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, ident: Ma
     Returns:
         (the field, the intervals, the correction's record (None: no parameter to move, or the refined scene
         could not be built: ``notes`` says why), the refined scene the field now belongs to (None: the field is
-        ``ident``, no step lowered the refined loss or none was tried), the refined simulation of the field)
+        ``ident``: no step was taken or none was tried), the refined simulation of the field)
     """
-    vector = _ParameterVector(problem, init_field, config)
     here = ident.to_params(global_material=config.global_material, nu_bounds=config.nu_bounds)
     theta = vector.theta(here)
     kinds = ["E"] * vector.M + (["nu"] * vector.M if config.optimize_nu else [])
@@ -714,8 +714,8 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, ident: Ma
                         before=theta[free].tolist(), after=corrected[free].tolist(), loss=loss, refined_loss=losses,
                         stopped=stopped, seconds=time.perf_counter() - t0)
     if len(losses) == 1:
-        notes.append(f"refined correction: no step lowered the loss at {config.refined_correction:g}x the grid "
-                     f"({stopped}); the materials stay as identified")
+        notes.append(f"refined correction: no step taken at {config.refined_correction:g}x the grid ({stopped}); "
+                     "the materials stay as identified")
         return ident, intervals, record, None, Simulations()
     moved = [shifted_interval(iv, float(corrected[k] - theta[k])) if free[k] else iv
              for iv in intervals for k in [here.slot(iv.object_id) + (vector.M if iv.parameter == "nu" else 0)]]
