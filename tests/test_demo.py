@@ -42,7 +42,8 @@ def test_demo_rejects_bad_options(tmp_path):
 @pytest.fixture(scope="module")
 def seed0_twice(tmp_path_factory):
     """Two reduced demos with seed 0, each in its own folder, from a process with 1 and with 2 torch threads
-    (the demo runs on its own ``threads``, 1, and puts the process's setting back)."""
+    (the demo runs on its own ``threads``, 1, and puts the process's setting back), the first with one
+    simulation at a time, the second with two side by side."""
     import torch
 
     root = tmp_path_factory.mktemp("demo")
@@ -50,7 +51,7 @@ def seed0_twice(tmp_path_factory):
     try:
         for k in range(2):
             torch.set_num_threads(k + 1)
-            runs.append((root / f"run{k}", run_demo(root / f"run{k}", DemoConfig(**REDUCED))))
+            runs.append((root / f"run{k}", run_demo(root / f"run{k}", DemoConfig(**REDUCED, workers=k + 1))))
             assert torch.get_num_threads() == k + 1
     finally:
         torch.set_num_threads(before)
@@ -66,9 +67,10 @@ def _identify_record(out) -> tuple:
     return mats, hist, m["identifiable"], m["intervals"], m["re_mean"], m["epe"]
 
 
-def test_the_same_seed_gives_the_same_materials_whatever_the_processs_thread_count(seed0_twice):
+def test_the_same_seed_gives_the_same_materials_whatever_the_processs_thread_count_and_the_workers(seed0_twice):
     (a, sa), (b, sb) = seed0_twice
     assert sa["seed"] == sb["seed"] == 0 and sa["threads"] == sb["threads"] == 1
+    assert (sa["workers"], sb["workers"]) == (1, 2)
     assert sa["materials"] == sb["materials"] and sa["materials"][0]["E_identified"] > 0
     lo, hi = sa["materials"][0]["E_interval"]  # the summary carries each result's 90% interval and source
     assert lo <= sa["materials"][0]["E_identified"] <= hi and sa["materials"][0]["source"]

@@ -31,6 +31,11 @@ def evaluations(residuals, calls: list):
     return evaluate
 
 
+def joint(coarse, refined):
+    """(thetas, refined thetas) -> (their Evaluations by ``coarse``, by ``refined``): the correction's evaluator."""
+    return lambda thetas, refined_thetas: (coarse(thetas), refined(refined_thetas))
+
+
 def no_box(theta):
     return np.array(theta, dtype=float)
 
@@ -56,8 +61,8 @@ def test_a_defect_that_does_not_depend_on_theta_is_corrected_in_one_step_moving_
     theta = np.array([*coarse_opt, fixed])
     coarse_calls, fine_calls = [], []
     out, ev, loss, losses, stopped = correct_to_refined(
-        theta, free, evaluations(lambda t: A @ t - Y, coarse_calls),
-        evaluations(lambda t: A @ t + b - Y, fine_calls), no_box, STEPS, max_steps=3, tol=1e-3)
+        theta, free, joint(evaluations(lambda t: A @ t - Y, coarse_calls),
+                           evaluations(lambda t: A @ t + b - Y, fine_calls)), no_box, STEPS, max_steps=3, tol=1e-3)
     np.testing.assert_allclose(out[free], refined_opt, atol=1e-9)
     assert out[2] == fixed and stopped == "converged"
     assert len(coarse_calls) == 1 + free.sum()  # theta and one forward difference per free parameter
@@ -86,7 +91,7 @@ def test_a_nonlinear_refined_model_is_approached_with_a_loss_that_falls_at_every
     coarse_opt = least_squares(coarse, x0).x
     refined_opt = least_squares(refined, coarse_opt).x
     out, _, _, losses, stopped = correct_to_refined(
-        coarse_opt, np.array([True, True]), evaluations(coarse, []), evaluations(refined, []), no_box,
+        coarse_opt, np.array([True, True]), joint(evaluations(coarse, []), evaluations(refined, [])), no_box,
         STEPS[:2], max_steps=6, tol=1e-6)
     assert all(b < a for a, b in zip(losses, losses[1:]))
     assert np.abs(out - refined_opt).max() < 0.2 * np.abs(coarse_opt - refined_opt).max()
@@ -97,8 +102,9 @@ def test_a_gain_within_the_frames_noise_is_not_taken():
     but by less than the frame-to-frame noise of that loss can tell, so the estimate stays where it was."""
     theta = np.linalg.lstsq(A, Y, rcond=None)[0]
     out, ev, _, losses, stopped = correct_to_refined(
-        theta, np.array([True, True, True]), evaluations(lambda t: A @ t - Y, []),
-        evaluations(lambda t: A @ t - Y + 3 * NOISE, []), no_box, STEPS, max_steps=3, tol=1e-3)
+        theta, np.array([True, True, True]), joint(evaluations(lambda t: A @ t - Y, []),
+                                                  evaluations(lambda t: A @ t - Y + 3 * NOISE, [])),
+        no_box, STEPS, max_steps=3, tol=1e-3)
     assert stopped == "not significant" and np.array_equal(out, theta) and len(losses) == 1
 
 
@@ -108,8 +114,10 @@ def test_a_step_that_lowers_no_refined_loss_leaves_the_estimate_and_says_so():
     theta = np.array([0.5, 0.5, 0.5])
     fine_calls = []
     out, ev, _, losses, stopped = correct_to_refined(
-        theta, np.array([True, False, False]), evaluations(lambda t: A @ t - Y, []),
-        evaluations(lambda t: np.full(40, 1.0 + abs(t[0] - 0.5)), fine_calls), no_box, STEPS, max_steps=3, tol=1e-3)
+        theta, np.array([True, False, False]),
+        joint(evaluations(lambda t: A @ t - Y, []),
+              evaluations(lambda t: np.full(40, 1.0 + abs(t[0] - 0.5)), fine_calls)),
+        no_box, STEPS, max_steps=3, tol=1e-3)
     assert stopped == "no descent" and np.array_equal(out, theta) and losses == [40.0]
     assert len(fine_calls) == 3  # theta, then the step and its half side by side
 
@@ -117,15 +125,15 @@ def test_a_step_that_lowers_no_refined_loss_leaves_the_estimate_and_says_so():
 def test_the_steps_stay_in_the_search_box():
     box = lambda t: np.clip(t, -1.0, 0.1)  # noqa: E731
     out, *_ = correct_to_refined(np.array([0.0, 0.0, 0.0]), np.array([True, True, True]),
-                                 evaluations(lambda t: A @ t - Y, []),
-                                 evaluations(lambda t: A @ t - Y - A @ [1, 1, 1], []),
+                                 joint(evaluations(lambda t: A @ t - Y, []),
+                                       evaluations(lambda t: A @ t - Y - A @ [1, 1, 1], [])),
                                  box, STEPS, max_steps=3, tol=1e-3)
     assert np.all(out <= 0.1) and np.all(out >= -1.0)
 
 
 def test_no_free_parameter_is_refused():
     with pytest.raises(ValueError, match="free parameter"):
-        correct_to_refined(np.zeros(3), np.zeros(3, dtype=bool), None, None, no_box, STEPS, 3, 1e-3)
+        correct_to_refined(np.zeros(3), np.zeros(3, dtype=bool), None, no_box, STEPS, 3, 1e-3)
 
 
 def test_an_interval_moves_with_its_estimate_within_its_search_box_and_keeps_its_slices():

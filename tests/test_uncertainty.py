@@ -632,6 +632,32 @@ def test_trials_side_by_side_fit_in_half_the_available_memory(monkeypatch):
     assert runtime.independent_runs("cpu", run) == 1 and runtime.independent_runs("cuda", run) == 1
 
 
+def test_simulations_side_by_side_sets_their_count_whatever_the_torch_threads(monkeypatch):
+    """A one-thread run (the demo's: the same reductions on every machine) can still run its simulations on
+    every core; the count is put back after, and the cores follow OMP_NUM_THREADS where it is set."""
+    import torch
+
+    import endogsim.warp_runtime as runtime
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    monkeypatch.setattr(runtime, "available_memory", lambda: None)
+    assert runtime.independent_runs("cpu") == 1
+    with runtime.simulations_side_by_side(2):
+        assert runtime.independent_runs("cpu") == 2 and runtime.independent_runs("cuda") == 1
+        with runtime.simulations_side_by_side(None):  # None keeps the count set outside
+            assert runtime.independent_runs("cpu") == 2
+        with runtime.simulations_side_by_side(9):
+            assert runtime.independent_runs("cpu") == 4  # at most 4, as with threads
+    assert runtime.independent_runs("cpu") == 1
+    with pytest.raises(ValueError, match="workers = 0"):
+        with runtime.simulations_side_by_side(0):
+            pass
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert runtime.cpu_cores() == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert runtime.cpu_cores() >= 1
+
+
 @pytest.mark.slow  # 70 s on a 2-core CPU; the synthetic-loss test above covers the scheduling by default
 def test_identification_trials_in_parallel_threads_match_one_at_a_time(tmp_path, monkeypatch):
     """The same through identification with real simulations (Warp on the CPU from several threads at

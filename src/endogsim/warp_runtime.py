@@ -29,6 +29,7 @@ import warp as wp
 
 __all__ = ["init_warp", "KERNEL_MODULES", "build_kernels", "kernels_built_aside", "warp_array", "warp_device",
            "float_vector", "n_bands", "launch_split", "independent_runs", "torch_threads",
+           "simulations_side_by_side", "cpu_cores",
            "run_independent", "check_cancelled", "Cancelled", "simulation_bytes", "available_memory"]
 
 _ready = False
@@ -36,6 +37,7 @@ _POOL: ThreadPoolExecutor | None = None
 _LAUNCHED: set = set()  # (kernel, device, argument types) launched once already
 _FIRST_LAUNCH = threading.Lock()  # a first launch (and the pool) from one thread at a time
 _aside = False  # a kernels_built_aside process runs for this process
+_side_by_side: int | None = None  # simulations_side_by_side's count (None: one per torch thread)
 R = TypeVar("R")
 
 
@@ -168,15 +170,47 @@ def torch_threads(threads: int | None) -> Iterator[None]:
 
 def independent_runs(device: str, bytes_per_run: int = 0) -> int:
     """How many independent simulations to run at a time on ``device`` (e.g. an interval's trials): on a
-    CPU one per torch thread, at most 4 (Warp runs each CPU launch on one core; ``OMP_NUM_THREADS`` or
-    ``torch.set_num_threads`` is the budget: set it to 1 when timing beside other jobs), and no more than
-    half the memory available now holds at ``bytes_per_run`` each (:func:`simulation_bytes`; at least one);
-    on CUDA one (its launches share the GPU)."""
-    runs = 1 if device != "cpu" else max(1, min(torch.get_num_threads(), 4))
+    CPU one per torch thread, or :func:`simulations_side_by_side`'s count where it is set, at most 4 (Warp
+    runs each CPU launch on one core; ``OMP_NUM_THREADS`` or ``torch.set_num_threads`` is the budget: set it
+    to 1 when timing beside other jobs), and no more than half the memory available now holds at
+    ``bytes_per_run`` each (:func:`simulation_bytes`; at least one); on CUDA one (its launches share the GPU)."""
+    budget = torch.get_num_threads() if _side_by_side is None else _side_by_side
+    runs = 1 if device != "cpu" else max(1, min(budget, 4))
     free = available_memory() if runs > 1 and bytes_per_run > 0 else None
     if free is not None:
         runs = max(1, min(runs, int(0.5 * free // bytes_per_run)))
     return runs
+
+
+@contextmanager
+def simulations_side_by_side(workers: int | None) -> Iterator[None]:
+    """Run the body with up to ``workers`` independent simulations at a time on a CPU (:func:`independent_runs`:
+    an interval's trials, the backward pass's recomputed segments, the refined correction's simulations),
+    whatever the torch thread count (None: one per torch thread). Each simulation computes what it would alone,
+    so the results do not depend on ``workers``: a one-thread run (the same reductions on every machine) can
+    still use every core for its simulations."""
+    global _side_by_side
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers = {workers} must be >= 1 (or None)")
+    before, _side_by_side = _side_by_side, (workers if workers is not None else _side_by_side)
+    try:
+        yield
+    finally:
+        _side_by_side = before
+
+
+def cpu_cores() -> int:
+    """The cores this process may run on (its CPU affinity), no more than ``OMP_NUM_THREADS`` where that is
+    set (the budget of a job timed beside others)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        cores = os.cpu_count() or 1
+    try:
+        cap = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        cap = 0
+    return max(1, min(cores, cap) if cap > 0 else cores)
 
 
 def simulation_bytes(num_particles: int, num_frames: int, grid_res: int) -> int:

@@ -49,6 +49,7 @@ from typing import Sequence
 
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.errors import EndoGSimError
+from endogsim.identify.config import DEFAULT_REFINED_CORRECTION
 from endogsim.io.atomic import write_json_atomic
 from endogsim.io.runfolder import code_digest, json_digest, tree_digest
 
@@ -101,8 +102,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
               frames: int | None = None, render_scale: float = 0.5, global_ablation: bool | None = None,
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              refined_correction: float | None = None,
-              device: str = "cpu", fresh: bool = False) -> dict:
+              refined_correction: float | None = DEFAULT_REFINED_CORRECTION,
+              device: str = "cpu", fresh: bool = False, workers: int | None = None) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications (or reuse their stored record); the unit
     of work of both paths.
 
@@ -123,12 +124,15 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
             suite's).
         refine: identify at the scene's identification discretisation refined by this factor
             (``IdentifyConfig.refine``); it must stay coarser than the ground truth's simulation.
-        refined_correction: the estimate's refined correction (``IdentifyConfig.refined_correction``; None:
-            none); ``refine`` times this must stay coarser than the ground truth's simulation too.
+        refined_correction: the estimate's refined correction (``IdentifyConfig.refined_correction``; default
+            identification's, None: none); ``refine`` times this must stay coarser than the ground truth's
+            simulation too.
         device: identification's simulator and renderer ("cpu" or "cuda"; ``IdentifyConfig.device``). The
             ground truth is synthesized on the CPU either way.
         fresh: run the identifications even where ``work_dir/NAME/scene_result.json`` holds a record made with
             the same settings, scene and code (module docstring).
+        workers: simulations run side by side (:func:`~endogsim.warp_runtime.simulations_side_by_side`; None: one
+            per torch thread). The results do not depend on it, only the time does.
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
@@ -141,6 +145,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     from endogsim.bench.identify import ensure_scene
     from endogsim.identify import IdentifyConfig, run_identify
     from endogsim.scene.folder import load_sim_scene
+    from endogsim.warp_runtime import simulations_side_by_side
 
     if threads:
         torch.set_num_threads(threads)
@@ -178,7 +183,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
                              intervals=key == FULL_METHOD, time_budget=time_budget, optimizer=optimizer,
                              refine=refine, refined_correction=refined_correction, device=device)
         t_run = time.perf_counter()
-        m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
+        with simulations_side_by_side(workers):
+            m = run_identify(folder, work / key, init=init, config=cfg, resume=False, video=False, problem=problem)
         rec = {k: m.get(k, math.nan) for k in ("re_mean", "re_E", "re_nu", "e_rel_error_mean", "e_rel_error_median",
                                                "epe", "psnr", "ssim", "seconds", "iterations")}
         rec["seconds_per_iteration"] = m["seconds"] / m["iterations"] if m.get("iterations") else None
@@ -307,8 +313,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               frames: int | None = None, fid_weights: str | None = None, ray: bool = False,
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
-              refined_correction: float | None = None,
-              device: str = "cpu", fresh: bool = False, log=print) -> dict:
+              refined_correction: float | None = DEFAULT_REFINED_CORRECTION,
+              device: str = "cpu", fresh: bool = False, workers: int | None = None, log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -326,7 +332,9 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         refine: identify at each scene's identification discretisation refined by this factor (default 1;
             below the ground truth's 2).
         refined_correction: the estimates' refined correction (``IdentifyConfig.refined_correction``; default
-            None: none); ``refine`` times this must stay below the ground truth's 2 too.
+            identification's, 1.5; None: none); ``refine`` times this must stay below the ground truth's 2 too.
+        workers: simulations run side by side in the in-process path (None: one per torch thread; Ray tasks
+            one); the results do not depend on it.
         device: identification's device ("cpu" or "cuda"): the same computation in another order of
             floating-point sums.
         fresh: run every scene again, even one whose stored record this run could reuse (module docstring).
@@ -371,7 +379,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         results = []
         for k in kw:
             log(f"scene {k['name']} ...")
-            results.append(run_scene(**k, threads=threads))
+            results.append(run_scene(**k, threads=threads, workers=workers))
     per_scene = {r["scene"]: r for r in results}
     for r in results:
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s" + (" (its stored record: the same settings, scene and "
@@ -379,7 +387,7 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
                          "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
-                         "refined_correction": refined_correction, "device": device},
+                         "refined_correction": refined_correction, "device": device, "workers": workers},
             "scenes": per_scene, "tables": suite_tables(per_scene),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 

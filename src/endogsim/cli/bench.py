@@ -14,6 +14,7 @@ import typer
 from endogsim.bench.identify import SCENES_CACHE
 from endogsim.bench.suite import DEFAULT_ITERS, RUN_KEYS
 from endogsim.cli.common import console, print_table, progress, user_errors
+from endogsim.identify.config import DEFAULT_REFINED_CORRECTION
 from endogsim.io.atomic import write_json_atomic
 
 
@@ -141,10 +142,10 @@ def register(bench_app: typer.Typer) -> None:
         refine: float = typer.Option(1.0, "--refine", help="Identify at the scenes' identification discretisation "
                                      "refined by this factor (grid x F, particle spacing / F, substeps x F; up to "
                                      "F^4 the time). Below 2, the ground truth's."),
-        refined_correction: float = typer.Option(0.0, "--refined-correction",
-                                                 help="Correct what the video determines to the discretisation "
-                                                      "refined this many times more, e.g. 1.5 (0, the default: "
-                                                      "none). Times --refine, below 2, the ground truth's."),
+        refined_correction: Optional[float] = typer.Option(
+            None, "--refined-correction", help="Correct what the video determines to the discretisation refined this "
+            "many times more (0: none; default: identification's 1.5 at --refine 1, none at a finer --refine). Times "
+            "--refine, below 2, the ground truth's."),
         device: str = typer.Option("cpu", "--device", help="Identification's simulator and renderer: cpu | cuda "
                                    "(the ground truth is synthesized on the CPU)."),
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
@@ -152,6 +153,8 @@ def register(bench_app: typer.Typer) -> None:
                                    "the work folder was made with the same settings, scene and code is reused)."),
         fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
         threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
+        workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Simulations run side by side (default: "
+                                              "one per torch thread). The results do not depend on it."),
         scenes_dir: Path = typer.Option(SCENES_CACHE, "--scenes-dir",
                                         help="Where scenes are synthesized (reused)."),
         work_dir: Path = typer.Option(Path("bench_suite_runs"), "--work-dir", help="Run folders."),
@@ -161,11 +164,14 @@ def register(bench_app: typer.Typer) -> None:
         from endogsim.bench.suite import run_suite
 
         use_ray = ray or ray_address is not None
+        if refined_correction is None:
+            refined_correction = DEFAULT_REFINED_CORRECTION if refine == 1.0 else 0.0
         res = run_suite(scenes.split(",") if scenes else None, scenes_dir, work_dir, iters=iters, quick=quick,
                         frames=frames, fid_weights=str(fid_weights) if fid_weights else None, ray=use_ray,
                         ray_address=ray_address, threads=threads, runs=runs.split(",") if runs else None,
                         time_budget=time_budget, optimizer=optimizer, refine=refine,
-                        refined_correction=refined_correction or None, device=device, fresh=fresh, log=console.print)
+                        refined_correction=refined_correction or None, device=device, fresh=fresh, workers=workers,
+                        log=console.print)
         for t in res["tables"].values():
             print_table(t["title"], t["columns"], t["rows"])
             if t.get("note"):

@@ -111,6 +111,9 @@ def register(app: typer.Typer) -> None:
         threads: int = typer.Option(1, "--threads", help="Torch threads for the demo. 1: the same numbers on every "
                                     "machine; more: faster, but CPU sums run in another order and the answer can "
                                     "differ."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Simulations run side by side in "
+                                              "identification (default: one per core). The results do not "
+                                              "depend on it."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         preview: bool = typer.Option(False, "--preview", help="Only render the procedural scene under a moving "
@@ -138,7 +141,7 @@ def register(app: typer.Typer) -> None:
 
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
-        cfg = DemoConfig(scene=scene, seed=seed, threads=threads)  # checks threads >= 1
+        cfg = DemoConfig(scene=scene, seed=seed, threads=threads, workers=workers)  # checks both >= 1
         if recon_iters is not None:
             cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:
@@ -177,6 +180,9 @@ def register(app: typer.Typer) -> None:
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth scene folder (benchmark protocol)."),
         interaction: str = typer.Option("poke", "--interaction", help="New interaction to simulate (name or JSON; "
                                         "'none' to skip)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Simulations run side by side in "
+                                              "identification (default: one per core). The results do not "
+                                              "depend on it."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
@@ -221,6 +227,9 @@ def register(app: typer.Typer) -> None:
         materials_backend: str = typer.Option("prior", "--materials-backend",
                                               help="Initial materials (and the 'prior' baseline): manual | prior | "
                                                    "mllm | replay | a material JSON file."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Simulations run side by side in "
+                                              "identification (default: one per core). The results do not "
+                                              "depend on it."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Calibration iterations."),
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),

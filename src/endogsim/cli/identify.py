@@ -53,10 +53,9 @@ def register(app: typer.Typer) -> None:
                                                  "again on a grid this fraction as fine (0: not measured, the "
                                                  "interval holds the video's noise alone)."),
         refine: float = typer.Option(_DEFAULT.refine, "--refine", help=REFINE_HELP),
-        refined_correction: float = typer.Option(0.0, "--refined-correction",
+        refined_correction: float = typer.Option(_DEFAULT.refined_correction, "--refined-correction",
                                                  help="Correct what the video determines to the discretisation "
-                                                      "refined this many times, e.g. 1.5 (forward simulations; "
-                                                      "0, the default: none)."),
+                                                      "refined this many times (forward simulations; 0: none)."),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),

@@ -19,6 +19,8 @@ OPTIMIZER_KINDS: tuple[str, ...] = get_args(OptimizerKind)
 #: The automatic frame stride compares at least this many frames (the intervals' t-test then has 9 degrees of
 #: freedom or more): a 10-frame clip is compared at every frame, a 20-frame one at every second.
 MIN_COMPARED_FRAMES = 10
+#: The default refined correction's factor (``IdentifyConfig.refined_correction``; docs/IDENTIFICATION.md section 3).
+DEFAULT_REFINED_CORRECTION = 1.5
 
 
 @dataclass
@@ -105,10 +107,10 @@ class IdentifyConfig:
             refined simulation's residuals with the Jacobian of this one
             (:mod:`endogsim.identify.refined_correction`; forward simulations only: one per moved parameter
             here, one or two refined ones a step). The materials then belong to the refined discretisation
-            (``endogsim simulate`` simulates them there). At 1.5x on the suite's scenes at 1x it brings the
-            median |E/E_true - 1| from 0.27 to 0.12, at up to 204 s more a scene on a 2-core CPU, which takes
-            `lift_real` past 10 minutes and a demo seed past 3 (docs/IDENTIFICATION.md section 3). None (the
-            default): no correction.
+            (``endogsim simulate`` simulates them there). At 1.5x (the default) on the suite's scenes at 1x it
+            brings the median |E/E_true - 1| from 0.27 to 0.12; its simulations run side by side, and the
+            slowest suite scene, `lift_real`, takes 555 s in all on a 2-core CPU (docs/IDENTIFICATION.md section
+            3). None: no correction.
         correction_steps: the most steps of that correction. Each costs one or two refined simulations (a pair side
             by side); on the suite no scene gained from a third (docs/IDENTIFICATION.md section 3).
         render_scale: render (and compare) at this fraction of the image size; flows scale with it. Rendering
@@ -155,7 +157,7 @@ class IdentifyConfig:
     intervals: bool = True
     coarse_factor: float | None = 0.7
     refine: float = 1.0
-    refined_correction: float | None = None
+    refined_correction: float | None = DEFAULT_REFINED_CORRECTION
     correction_steps: int = 2
     render_scale: float = 0.5
     flow: FlowConfig = field(default_factory=lambda: FlowConfig("dis_fine"))

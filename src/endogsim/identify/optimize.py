@@ -404,14 +404,29 @@ def side_by_side(problem: SimScene, init_field: MaterialField, vector: _Paramete
                  config: IdentifyConfig) -> Callable[[list[np.ndarray]], list[Evaluation]]:
     """thetas -> their :class:`Evaluation` on ``problem``, simulated side by side (the first one alone: Warp builds
     its kernels on a scene's first simulation)."""
+    both = coarse_and_refined(problem, problem, init_field, vector, obs, camera, config)
+    return lambda thetas: both(thetas, [])[0]
+
+
+def coarse_and_refined(problem: SimScene, refined: SimScene, init_field: MaterialField, vector: _ParameterVector,
+                       obs: Observations, camera, config: IdentifyConfig,
+                       ) -> Callable[[list[np.ndarray], list[np.ndarray]], tuple[list[Evaluation], list[Evaluation]]]:
+    """(thetas, refined thetas) -> their :class:`Evaluation` on ``problem`` and on ``refined`` (the same scene at
+    another discretisation), all simulated side by side, the refined ones first (the longest start first; the
+    first simulation of ``problem`` alone: Warp builds its kernels on a scene's first simulation)."""
     warmed = []
 
-    def evaluate(thetas: list[np.ndarray]) -> list[Evaluation]:
-        tasks = [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, camera, config)
-                 for t in thetas]
-        first = [] if warmed or not tasks else [tasks.pop(0)()]
+    def evaluate(thetas: list[np.ndarray], refined_thetas: list[np.ndarray],
+                 ) -> tuple[list[Evaluation], list[Evaluation]]:
+        tasks = [partial(evaluate_residuals, refined, init_field, vector.params(t), obs, camera, config)
+                 for t in refined_thetas]
+        tasks += [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, camera, config)
+                  for t in thetas]
+        first = [] if warmed or not thetas else [tasks.pop(len(refined_thetas))()]
         warmed.append(True)
-        return first + run_independent(tasks, problem.independent_simulations())
+        done = run_independent(tasks, min(problem.independent_simulations(), refined.independent_simulations()))
+        n = len(refined_thetas)
+        return first + done[n:], done[:n]
 
     return evaluate
 
@@ -705,9 +720,8 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _
         return ident, intervals, None, None, Simulations()
     t0 = time.perf_counter()
     corrected, ev, loss, losses, stopped = correct_to_refined(
-        theta, free, side_by_side(problem, init_field, vector, obs, camera, config),
-        side_by_side(refined, init_field, vector, obs, camera, config), vector.box, vector.steps(),
-        config.correction_steps, config.tol)
+        theta, free, coarse_and_refined(problem, refined, init_field, vector, obs, camera, config), vector.box,
+        vector.steps(), config.correction_steps, config.tol)
     record = Correction(factor=config.refined_correction,
                         parameters=[f"{problem.labels[slots[k % vector.M]].name} {what}"
                                     for k, what in enumerate(kinds) if free[k]],

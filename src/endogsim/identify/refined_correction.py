@@ -19,8 +19,8 @@ test of docs/IDENTIFICATION.md section 1 that decides identifiability. A move th
 is not made: where the loss is flat (the demo's probe-driven clip, whose render residual dominates), a
 Gauss-Newton step travels far on a gain of a fraction of a percent. No step is simulated where the Gauss-Newton
 model predicts a gain of at most ``tol``.
-Cost: one simulation per moved parameter at the identification discretisation (the Jacobian, side by side)
-and one or two refined ones per step, all forward.
+Cost: one simulation per moved parameter at the identification discretisation (the Jacobian, side by side with
+the refined one at the identified materials) and one or two refined ones per step, all forward.
 
 Only parameters whose value the video gave move (identified, or a one-sided estimate whose statistical interval
 excludes the prior): a parameter kept at its prior stays there. Their intervals move with them
@@ -73,8 +73,8 @@ class Correction:
 
 
 def correct_to_refined(theta: np.ndarray, free: np.ndarray,
-                       evaluate: Callable[[list[np.ndarray]], list[Evaluation]],
-                       evaluate_refined: Callable[[list[np.ndarray]], list[Evaluation]],
+                       evaluate: Callable[[list[np.ndarray], list[np.ndarray]],
+                                          tuple[list[Evaluation], list[Evaluation]]],
                        box: Callable[[np.ndarray], np.ndarray], steps: np.ndarray, max_steps: int, tol: float,
                        ) -> tuple[np.ndarray, Evaluation, float, list[float], str]:
     """Chord Gauss-Newton steps on the refined residuals (module docstring).
@@ -82,8 +82,8 @@ def correct_to_refined(theta: np.ndarray, free: np.ndarray,
     Args:
         theta: [p] the identified parameters (log10 E of each slot, then nu of each slot).
         free: [p] bool, the parameters that may move (at least one).
-        evaluate: thetas -> their :class:`Evaluation` at the identification discretisation (side by side).
-        evaluate_refined: the same at the refined discretisation.
+        evaluate: (thetas, refined thetas) -> their :class:`Evaluation` at the identification discretisation and
+            at the refined one, all side by side (the Jacobian's simulations beside the refined one at ``theta``).
         box: theta -> theta projected into the search box.
         steps: [p] forward-difference steps (:data:`~endogsim.identify.levenberg_marquardt.FD_STEPS`).
         max_steps: the most steps.
@@ -106,9 +106,8 @@ def correct_to_refined(theta: np.ndarray, free: np.ndarray,
 
     x = np.asarray(theta, dtype=float)[free]
     points = jacobian_points(x, np.asarray(steps, dtype=float)[free], box_free)
-    here, *around = evaluate([full(x)] + [full(p) for p in points])
+    (here, *around), (fine,) = evaluate([full(x)] + [full(p) for p in points], [full(x)])
     J = jacobian(here.residuals, x, points, [e.residuals for e in around])
-    fine = evaluate_refined([full(x)])[0]
     losses, stopped = [fine.loss], "steps"
     for _ in range(max_steps):
         d = boxed_step(J, fine.residuals, 0.0, x, box_free)
@@ -117,7 +116,7 @@ def correct_to_refined(theta: np.ndarray, free: np.ndarray,
             break
         cands = [box_free(x + d), box_free(x + 0.5 * d)]
         moving = [c for c in cands if not np.array_equal(c, x)]
-        results = evaluate_refined([full(c) for c in moving]) if moving else []
+        results = evaluate([], [full(c) for c in moving])[1] if moving else []
         best = min(range(len(results)), key=lambda i: results[i].loss, default=None)
         if best is None or not results[best].loss < fine.loss:
             stopped = "no descent"

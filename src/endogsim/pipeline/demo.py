@@ -51,6 +51,10 @@ class DemoConfig:
             can turn an 8th-digit difference into another answer; 1 (the default) gives every machine the same
             numbers (the demo's published figures are one-thread runs; a demo takes 2.5-3 min that way on a
             2-core CPU, its second core building Warp's kernels on a machine's first run).
+        workers: simulations identification runs side by side (an interval's trials, the backward pass's
+            recomputed segments, the refined correction's simulations), or None for one per core of this machine
+            (:func:`~endogsim.warp_runtime.cpu_cores`). Each simulation computes what it would alone: the results
+            do not depend on it, only the time does.
     """
 
     scene: str = "tiny"
@@ -63,12 +67,14 @@ class DemoConfig:
     interaction: str | None = "poke"
     tool_motion: str = "truth"
     threads: int | None = 1
+    workers: int | None = None
 
     def __post_init__(self) -> None:
-        if self.threads is not None and self.threads < 1:
-            from endogsim.errors import DataError
+        for name in ("threads", "workers"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                from endogsim.errors import DataError
 
-            raise DataError(f"DemoConfig.threads = {self.threads} must be >= 1 (or None)")
+                raise DataError(f"DemoConfig.{name} = {getattr(self, name)} must be >= 1 (or None)")
         if isinstance(self.recon, dict):
             self.recon = ReconConfig.from_dict(self.recon)
         if isinstance(self.identify, dict):
@@ -101,18 +107,25 @@ def synthesize_observed(out: Path, cfg: DemoConfig, on_stage: Callable[[str, str
 
 def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig(),
              on_stage: Callable[[str, str], None] | None = None) -> dict:
-    """Run (or resume) the demo into ``out`` with ``cfg.threads`` torch threads; returns the summary (also
-    written to ``out/summary.json``)."""
-    from endogsim.warp_runtime import KERNEL_MODULES, kernels_built_aside, torch_threads
+    """Run (or resume) the demo into ``out`` with ``cfg.threads`` torch threads and ``cfg.workers``
+    simulations side by side; returns the summary (also written to ``out/summary.json``)."""
+    from endogsim.warp_runtime import (
+        KERNEL_MODULES,
+        cpu_cores,
+        kernels_built_aside,
+        simulations_side_by_side,
+        torch_threads,
+    )
 
     # The synthesis builds the simulator's kernels; the later stages' kernels are built meanwhile on a core
     # the one-thread demo leaves idle (on a machine's first run, ~20 s of Warp builds).
-    with torch_threads(cfg.threads), kernels_built_aside([KERNEL_MODULES[k] for k in ("render", "hexplane",
-                                                                                       "adjoints")]):
-        return _run_demo(out, cfg, on_stage)
+    workers = cfg.workers if cfg.workers is not None else cpu_cores()
+    with torch_threads(cfg.threads), simulations_side_by_side(workers), \
+            kernels_built_aside([KERNEL_MODULES[k] for k in ("render", "hexplane", "adjoints")]):
+        return _run_demo(out, cfg, on_stage, workers)
 
 
-def _run_demo(out: str | Path, cfg: DemoConfig, on_stage: Callable[[str, str], None] | None) -> dict:
+def _run_demo(out: str | Path, cfg: DemoConfig, on_stage: Callable[[str, str], None] | None, workers: int) -> dict:
     from endogsim.materials.field import MaterialField
     from endogsim.pipeline.run import PipelineConfig, run_pipeline
     from endogsim.scene.schema import load_scene_spec
@@ -145,6 +158,7 @@ def _run_demo(out: str | Path, cfg: DemoConfig, on_stage: Callable[[str, str], N
     summary = {
         "seed": cfg.seed,
         "threads": torch.get_num_threads(),
+        "workers": workers,
         "seconds": round(time.perf_counter() - t0, 1),  # this invocation (less when resuming)
         "pipeline_seconds": round(sum(v.get("seconds", 0.0) for v in state["stages"].values()), 1),
         "materials": rows,
