@@ -38,6 +38,10 @@ OPTIMIZER_HELP = ("rprop (steps grow while the gradient keeps its direction) | a
 REFINE_WHAT = ("Simulate at the scene's identification discretisation refined by this factor: grid x F, particle "
                "spacing / F, substeps x F; nearer converged, up to F^4 the time and F^3 the memory")
 REFINE_HELP = REFINE_WHAT + " (1: the default)."
+#: ``--refined-correction`` of ``identify``, ``run`` and ``validate``
+#: (:attr:`endogsim.identify.IdentifyConfig.refined_correction`).
+REFINED_CORRECTION_HELP = ("Correct what the video determines to the discretisation refined this many times (forward "
+                           "simulations; 0: none). Default 1.5.")
 #: ``--time-budget`` of ``identify``, ``run`` and ``validate`` (:attr:`endogsim.identify.IdentifyConfig.time_budget`).
 TIME_BUDGET_HELP = ("Safety stop: no new iteration starts after this many seconds of optimisation (the best so far is "
                     "kept, and the run says it was stopped; the schedule follows the iterations only); 0: no stop.")

@@ -11,6 +11,7 @@ from endogsim.cli.common import (
     DEVICE_HELP,
     OPTIMIZER_HELP,
     REFINE_HELP,
+    REFINED_CORRECTION_HELP,
     TIME_BUDGET_HELP,
     output_folder,
     time_budget_option,
@@ -86,7 +87,7 @@ _PIPELINE_OPTIMIZER_HELP = ("The calibration's optimiser, default lm (it stops b
 
 
 def _identify_config(iters: int | None, optimizer: str | None, refine: float = 1.0, device: str = "cpu",
-                     time_budget: float | None = None):
+                     time_budget: float | None = None, refined_correction: float | None = None):
     """The identification (calibration) settings of ``run`` and ``validate``: the pipeline's defaults but for the
     options given (an unknown optimiser, a bad factor or a device this machine lacks is refused here, before
     any work)."""
@@ -94,7 +95,9 @@ def _identify_config(iters: int | None, optimizer: str | None, refine: float = 1
     from endogsim.pipeline.run import pipeline_identify
 
     given = (("iters", iters), ("optimizer", optimizer), ("refine", refine), ("device", resolve_device(device)))
-    return pipeline_identify(**{k: v for k, v in given if v is not None}, **time_budget_option(time_budget))
+    correction = {} if refined_correction is None else {"refined_correction": refined_correction or None}
+    return pipeline_identify(**{k: v for k, v in given if v is not None}, **correction,
+                             **time_budget_option(time_budget))
 
 
 def register(app: typer.Typer) -> None:
@@ -180,13 +183,12 @@ def register(app: typer.Typer) -> None:
         truth: Optional[Path] = typer.Option(None, "--truth", help="Ground-truth scene folder (benchmark protocol)."),
         interaction: str = typer.Option("poke", "--interaction", help="New interaction to simulate (name or JSON; "
                                         "'none' to skip)."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Simulations run side by side in "
-                                              "identification (default: one per core). The results do not "
-                                              "depend on it."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Identification iterations."),
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
+        refined_correction: Optional[float] = typer.Option(None, "--refined-correction",
+                                                           help=REFINED_CORRECTION_HELP),
         device: str = typer.Option("cpu", "--device", help=DEVICE_HELP),
         time_budget: Optional[float] = typer.Option(None, "--time-budget", help=TIME_BUDGET_HELP + " Default: "
                                                     "the pipeline's, 480 s."),
@@ -207,7 +209,7 @@ def register(app: typer.Typer) -> None:
         from endogsim.recon.config import ReconConfig
 
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
+        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget, refined_correction)
         cfg = PipelineConfig(materials_backend=materials_backend, recon=ReconConfig.from_dict(recon), identify=ident,
                              interaction=None if interaction == "none" else interaction,
                              scenario=_real_scenario(grasping, border_motion, support_friction, gravity,
@@ -227,13 +229,12 @@ def register(app: typer.Typer) -> None:
         materials_backend: str = typer.Option("prior", "--materials-backend",
                                               help="Initial materials (and the 'prior' baseline): manual | prior | "
                                                    "mllm | replay | a material JSON file."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Simulations run side by side in "
-                                              "identification (default: one per core). The results do not "
-                                              "depend on it."),
         recon_iters: Optional[int] = typer.Option(None, "--recon-iters", help="Reconstruction iterations."),
         identify_iters: Optional[int] = typer.Option(None, "--identify-iters", help="Calibration iterations."),
         optimizer: Optional[str] = typer.Option(None, "--optimizer", help=_PIPELINE_OPTIMIZER_HELP),
         refine: float = typer.Option(1.0, "--refine", help=REFINE_HELP),
+        refined_correction: Optional[float] = typer.Option(None, "--refined-correction",
+                                                           help=REFINED_CORRECTION_HELP),
         device: str = typer.Option("cpu", "--device", help=DEVICE_HELP),
         time_budget: Optional[float] = typer.Option(None, "--time-budget", help=TIME_BUDGET_HELP + " Default: "
                                                     "the pipeline's, 480 s."),
@@ -267,7 +268,7 @@ def register(app: typer.Typer) -> None:
         if json_out is not None and json_out.is_dir():
             raise DataError(f"{json_out}: --json names a folder; give the JSON file to write")
         recon = {k: v for k, v in (("iters", recon_iters), ("resolution_scale", resolution_scale)) if v is not None}
-        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget)
+        ident = _identify_config(identify_iters, optimizer, refine, device, time_budget, refined_correction)
         cfg = ValidateConfig(train_fraction=train_fraction, init=materials_backend, recon_run=recon_run,
                              pipeline=PipelineConfig(recon=ReconConfig.from_dict(recon), identify=ident, interaction=None,
                                                      scenario=_real_scenario(grasping, border_motion,

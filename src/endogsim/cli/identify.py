@@ -11,6 +11,7 @@ import typer
 from endogsim.cli.common import (
     OPTIMIZER_HELP,
     REFINE_HELP,
+    REFINED_CORRECTION_HELP,
     TIME_BUDGET_HELP,
     output_folder,
     time_budget_option,
@@ -54,8 +55,7 @@ def register(app: typer.Typer) -> None:
                                                  "interval holds the video's noise alone)."),
         refine: float = typer.Option(_DEFAULT.refine, "--refine", help=REFINE_HELP),
         refined_correction: float = typer.Option(_DEFAULT.refined_correction, "--refined-correction",
-                                                 help="Correct what the video determines to the discretisation "
-                                                      "refined this many times (forward simulations; 0: none)."),
+                                                 help=REFINED_CORRECTION_HELP),
         flow: str = typer.Option("dis_fine", "--flow", help="Observed-flow estimator: dis_fine | dis | raft."),
         flow_weights: Optional[str] = typer.Option(None, "--flow-weights", help="Local RAFT weights file."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator and renderer)."),
