@@ -781,6 +781,11 @@ def test_run_options_are_checked_before_the_reconstruction(tiny, tmp_path):
     from endogsim.cli.demo import _identify_config  # --time-budget: the pipeline's 480 s, a number, or 0: none
 
     assert [_identify_config(None, None, time_budget=b).time_budget for b in (None, 60, 0)] == [480, 60, None]
+    # --refined-correction: identification's 1.5, a factor, or 0: none
+    assert [_identify_config(None, None, refined_correction=f).refined_correction
+            for f in (None, 1.3, 0)] == [1.5, 1.3, None]
+    one_line_error(cli("run", tiny, "--out", tmp_path / "run", "--refined-correction", "0.5"),
+                   "refined_correction = 0.5 must lie in (1, 4]")
     one_line_error(cli("validate", tiny, "--out", tmp_path / "v", "--json", tmp_path), "--json names a folder")
 
 
