@@ -131,14 +131,15 @@ def discretisation_record(problem: SimScene, refine: float) -> dict:
             "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps)}
 
 
-def correction_record(result: IdentifyResult, refine: float) -> dict | None:
+def correction_record(result: IdentifyResult, field_refine: float) -> dict | None:
     """metrics.json's ``refined_correction``: :class:`~endogsim.identify.refined_correction.Correction`'s
     record, with ``applied`` (whether it moved the materials) and the refined ``discretisation``
-    (:func:`discretisation_record`; None where the correction took no step). None: no correction was made."""
+    (:func:`discretisation_record` at ``field_refine``, the factor the field belongs to; None where the correction
+    took no step). None: no correction was made."""
     c = result.correction
     if c is None:
         return None
-    at = None if result.refined is None else discretisation_record(result.refined, refine * c.factor)
+    at = None if result.refined is None else discretisation_record(result.refined, field_refine)
     return {**c.to_json(), "applied": result.refined is not None, "discretisation": at}
 
 
@@ -273,7 +274,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
         "discretisation": discretisation_record(problem, config.refine),
         "force_scales": force_scale_record(problem),
-        "refined_correction": correction_record(result, config.refine),
+        "refined_correction": correction_record(result, refine),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,
                                "model": r.model, "source": r.source}
                       for r in result.field.records},
