@@ -421,6 +421,7 @@ def test_what_is_left_of_a_notch_beside_the_instrument_is_tissue_at_any_particle
 
     spec = _two_object_spec(0.003, 0.003, 0.004, 0.004)
     cam = Camera(torch.tensor(spec.camera.K), 320, 240)
+
     def pocket(x):  # [N] bool: the part of the gap beyond the shaft's end and wider than it
         return (x[:, 0] > -0.011) & (x[:, 0] < 0.001) & (np.abs(x[:, 1]) < 0.004)
 
