@@ -185,7 +185,8 @@ def surface_map(points: np.ndarray | torch.Tensor, camera: Camera, spacing: floa
 
 def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thickness: float, spacing: float,
                         origin: np.ndarray | None = None, closing_cells: int = 2,
-                        hidden_by: np.ndarray | None = None) -> tuple[FilledSolid, SurfaceMap]:
+                        hidden_by: np.ndarray | None = None,
+                        map_spacing: float | None = None) -> tuple[FilledSolid, SurfaceMap]:
     """Fill the slab of ``thickness`` behind the surface sampled by ``points`` with a lattice of ``spacing``.
 
     Args:
@@ -198,13 +199,19 @@ def fill_behind_surface(points: np.ndarray | torch.Tensor, camera: Camera, thick
             cell-centred on a grid of spacing through the world origin.
         closing_cells: holes in the footprint up to about this many image-plane cells are closed.
         hidden_by: [M, 3] world samples of instruments in front of the surface (:func:`surface_map`).
+        map_spacing: the spacing (metres) the surface map's cells follow (:func:`surface_map`); default
+            ``spacing``. Discretisations of one scene at several spacings pass one value, so that a finer one
+            refines the lattice inside the same solid: the map's hole closing and every band measured on it
+            are counted in its cells, and a map that followed the lattice would make a finer discretisation
+            see a more ragged outline.
     Returns:
         the :class:`FilledSolid` (empty when no lattice point lies in the slab: a surface smaller than about
         the spacing) and the :class:`SurfaceMap` it was filled behind.
     """
-    if not (thickness > 0 and spacing > 0):
-        raise SimulationError(f"thickness {thickness} m and spacing {spacing} m must be > 0")
-    smap = surface_map(points, camera, spacing, closing_cells, hidden_by)
+    if not (thickness > 0 and spacing > 0 and (map_spacing is None or map_spacing > 0)):
+        raise SimulationError(f"thickness {thickness} m, spacing {spacing} m and map spacing {map_spacing} m must "
+                              "be > 0")
+    smap = surface_map(points, camera, spacing if map_spacing is None else map_spacing, closing_cells, hidden_by)
     pts = np.asarray(points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points, np.float64)
     rng = np.linalg.norm(_to_camera(pts, camera), axis=1)
     # Lattice points in the box the slab can occupy (camera frame -> world via the inverse viewmat).

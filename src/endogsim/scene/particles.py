@@ -164,7 +164,8 @@ def gaussian_surfaces(g: Gaussians, object_ids: list[int], min_opacity: float = 
 
 
 def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Camera,
-                    settings: SimSettings, instruments: dict[int, np.ndarray] | None = None) -> SceneParticles:
+                    settings: SimSettings, instruments: dict[int, np.ndarray] | None = None,
+                    map_settings: SimSettings | None = None) -> SceneParticles:
     """Fill every deformable object of ``surfaces`` and apply its boundary conditions.
 
     Args:
@@ -176,9 +177,15 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
             A reconstruction has no tissue where an instrument hid it in every frame (a grasper's bite moves
             with the jaws); the tissue is filled on under them (:func:`~endogsim.physics.filling.hidden_part`)
             instead of ending, and being held, around them. A ground truth's whole surfaces need none.
+        map_settings: the discretisation whose particle spacing the objects' surface maps follow (their cells,
+            the holes they close, the gap that counts as two objects bordering; default ``settings``). A
+            refined or coarsened discretisation of identification's passes identification's, so that it
+            refines the particles inside the same solids, held along the same outlines
+            (:func:`particles_from_scene_gaussians`).
     """
     sc: ScenarioSpec = spec.scenario
     spacing = sc.spacing(settings)
+    map_spacing = sc.spacing(map_settings or settings)
     # Lattice points at the particle spacing through box_lo + spacing / 2: with spacing = dx / 2 these are
     # the quarter points of every grid cell, the usual two particles per cell and axis.
     origin = np.asarray(sc.box_lo, float) + spacing / 2
@@ -192,7 +199,7 @@ def build_particles(surfaces: dict[int, np.ndarray], spec: SceneSpec, camera: Ca
                             "(scenario.extrusion.thickness)")
         if len(pts) >= 3:
             solids[oid], maps[oid] = fill_behind_surface(pts, camera, thickness, spacing, origin=origin,
-                                                         hidden_by=hiding)
+                                                         hidden_by=hiding, map_spacing=map_spacing)
     kept = one_object_per_place(solids, origin, spacing)
     parts, pinned, borders, slabs = [], [], [], {}
     for oid, pts in surfaces.items():
@@ -228,9 +235,12 @@ def particles_from_scene_gaussians(g: Gaussians, spec: SceneSpec, camera: Camera
                                    settings: SimSettings) -> SceneParticles:
     """:func:`build_particles` of a scene's frame-0 Gaussians ``g``, as identification builds them on a real video
     and on a benchmark alike: the deformable objects' Gaussians are the surfaces filled, the rigid objects'
-    (the instruments) what hides them."""
+    (the instruments) what hides them. The surface maps follow the scenario's identification discretisation
+    whatever ``settings`` is: its refinements and coarsenings (the refined correction, the discretisation-error
+    walk, ``--refine``) fill the same solids, held along the same outlines."""
     return build_particles(gaussian_surfaces(g, [o.id for o in spec.deformable]), spec, camera, settings,
-                           instruments=gaussian_surfaces(g, [o.id for o in spec.rigid]))
+                           instruments=gaussian_surfaces(g, [o.id for o in spec.rigid]),
+                           map_settings=spec.scenario.identification)
 
 
 def one_object_per_place(solids: dict[int, FilledSolid], origin: np.ndarray, spacing: float) -> dict[int, np.ndarray]:
