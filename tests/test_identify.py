@@ -340,7 +340,7 @@ def test_a_resumed_run_takes_the_intervals_trials_from_its_checkpoint(problem, t
     assert [asdict(i) for i in again.intervals] == [asdict(i) for i in first.intervals]
 
 
-def test_a_time_budget_only_stops_the_run(run3, problem, tmp_path):
+def test_a_time_budget_only_stops_the_run(run3, problem, tmp_path, capsys):
     """A budget spent after the first iteration stops the run there; that iteration is the unstopped run's
     first (the learning-rate schedule follows ``iters``, not the clock), and the metrics say it was stopped."""
     res_a, _ = run3
@@ -351,6 +351,17 @@ def test_a_time_budget_only_stops_the_run(run3, problem, tmp_path):
     assert res.history[0]["E"]["1"] == pytest.approx(res_a.history[0]["E"]["1"], rel=1e-9)
     m = write_outputs(tmp_path, problem, res, fast_config(time_budget=1e-9), init_name="test", video=False)
     assert m["stopped_by_budget"] is True
+    # and every reader is told: the metrics' notes, the summary, the HTML report and the CLI's closing lines
+    # (an unfinished run's "not identifiable" must not read as the video's verdict)
+    assert any("stopped by the time budget" in n for n in m["notes"])
+    assert "stopped by the time budget" in (tmp_path / "summary.txt").read_text()
+    from endogsim.evaluate.report_html import write_report
+
+    assert "stopped by the time budget" in write_report(tmp_path).read_text()
+    from endogsim.cli.common import print_budget_stops
+
+    print_budget_stops({"calibration": 1})
+    assert "calibration was stopped by its time budget (a safety stop) after 1 iterations" in capsys.readouterr().out
 
 
 def test_unstable_request_is_refused_with_the_limit(problem):

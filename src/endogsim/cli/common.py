@@ -53,6 +53,14 @@ def time_budget_option(seconds: float | None) -> dict:
     return {} if seconds is None else {"time_budget": seconds or None}
 
 
+def print_budget_stops(stops: dict[str, int | None]) -> None:
+    """One yellow line for each stage its time budget stopped (stage -> the iterations it ran): a safety stop,
+    so what that stage kept depends on this machine's speed, which the closing lines must not hide."""
+    for stage, iterations in stops.items():
+        console.print(f"[yellow]{stage} was stopped by its time budget (a safety stop) after {iterations} iterations: "
+                      "its result depends on this machine's speed[/]")
+
+
 #: ``--device`` of ``run`` and ``validate``: where the calibration, the prediction and the simulation run.
 DEVICE_HELP = ("cpu | cuda: the simulator and renderer of the identification (calibration), prediction and simulation "
                "(the reconstruction picks its own device). The same computation; on CUDA sums run in another order.")

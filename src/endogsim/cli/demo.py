@@ -14,6 +14,7 @@ from endogsim.cli.common import (
     REFINED_CORRECTION_HELP,
     TIME_BUDGET_HELP,
     output_folder,
+    print_budget_stops,
     time_budget_option,
     user_errors,
 )
@@ -166,10 +167,7 @@ def register(app: typer.Typer) -> None:
                      ("seed", str(s["seed"])),
                      ("pipeline seconds (all stages after synthesis)", f"{s['pipeline_seconds']:.0f}"),
                      ("seconds of this invocation", f"{s['seconds']:.0f}")])
-        for stage, stopped in s["stopped_by_budget"].items():
-            if stopped:
-                console.print(f"[yellow]{stage} was stopped by its time budget (a safety stop) after "
-                              f"{s['iterations'][stage]} iterations: its result depends on this machine's speed[/]")
+        print_budget_stops({k: s["iterations"][k] for k, stopped in s["stopped_by_budget"].items() if stopped})
         console.print(f"report: {s['report']}")
 
     @app.command("run")
@@ -215,6 +213,7 @@ def register(app: typer.Typer) -> None:
                              scenario=_real_scenario(grasping, border_motion, support_friction, gravity,
                                                      gravity_direction, damping, mass_scaling))
         state = run_pipeline(data, out, cfg, truth=truth, on_stage=_stage_printer(), fresh=fresh)
+        print_budget_stops({k: v.get("iterations") for k, v in state["stages"].items() if v.get("stopped_by_budget")})
         console.print(f"report: {state['stages'].get('report', {}).get('report')}")
 
 
@@ -285,6 +284,8 @@ def register(app: typer.Typer) -> None:
                 console.print(f"{name} {par}: {kept:.4g} (loss least at {v['best']:.4g}), 90% interval "
                               f"[{v['interval'][0]:.4g}, {v['interval'][1]:.4g}] "
                               f"({'identifiable' if v['identifiable'] else 'NOT identifiable'}: {v['reason']})")
+        if res["calibration"]["stopped"] == "time_budget":
+            print_budget_stops({"calibration": res["calibration"]["iterations"]})
         if res.get("force_scales"):
             console.print(f"E's scale: {force_scale_text(res['force_scales'])}")
         console.print(f"{res['seconds']:.0f} s; report: {out / 'report.html'}")

@@ -14,6 +14,7 @@ from endogsim.cli.common import (
     REFINED_CORRECTION_HELP,
     TIME_BUDGET_HELP,
     output_folder,
+    print_budget_stops,
     time_budget_option,
     user_errors,
 )
@@ -120,6 +121,8 @@ def register(app: typer.Typer) -> None:
                       ("RE mean", m["re_mean"])] + scores
         print_table("Scores", ["metric", "value"], scores)
         console.print(f"E's scale: {force_scale_text(m['force_scales'])}")
+        if m["stopped"] == "time_budget":
+            print_budget_stops({"identification": m["iterations"]})
         if m.get("refined_correction") is not None:
             console.print(f"refined correction: {correction_text(m['refined_correction'])}")
         console.print(f"wrote {out}")

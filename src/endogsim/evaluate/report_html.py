@@ -339,6 +339,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                 if isinstance(metrics.get("discretisation"), dict) else "")
              + (f'; corrected to a refined discretisation: {_e(correction_text(metrics["refined_correction"]))}'
                 if isinstance(metrics.get("refined_correction"), dict) else "") + '</p>']
+    parts += [f'<p class="note">note: {_e(n)}</p>' for n in metrics.get("notes", [])]  # e.g. a time-budget stop
 
     # Videos side by side.
     vids = []

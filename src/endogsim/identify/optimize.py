@@ -626,6 +626,11 @@ def identify(
                      "less from any step in the search box)")
     elif stopped == "converged" and history[-1].get("lm_stopped") == "no descent":
         notes.append(f"stopped at iteration {history[-1]['iteration']}: no damped Gauss-Newton step lowered the loss")
+    elif stopped == "time_budget":  # a safety stop: what the run kept follows this machine's speed
+        notes.append(f"stopped by the time budget (a safety stop) after {len(history)} iterations ({seconds:.0f} s), "
+                     "before converging: the estimate, and which parameters keep their prior as not identifiable, "
+                     "are an unfinished run's and depend on this machine's speed (a longer budget, or none, lets it "
+                     "finish)")
 
     intervals: list[ParameterInterval] = []
     evaluated: dict = {}  # {"field", "evaluation"}: the field the slices imply, evaluated during the intervals
