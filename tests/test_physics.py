@@ -351,6 +351,29 @@ def test_organs_side_by_side_are_held_along_the_view_not_where_they_meet():
     assert alone.pinned[(np.abs(xa[:, 1]) < 0.005) & (xa[:, 0] > -0.0015)].all()
 
 
+@pytest.mark.parametrize("gap_mm, bordering", [(0.5, True), (1.0, True), (2.5, False)])
+def test_organs_up_to_gap_cells_apart_border_beyond_their_maps_margin(gap_mm, bordering):
+    """Footprints up to ``gap_cells`` (4) map cells apart border each other, wherever they lie: here 0.35-mm
+    cells, so a gap of 1 mm (2.9 cells) borders and one of 2.5 mm (7 cells) does not. Until stop 67 a
+    neighbour was looked for on the object's own map only, which reaches 2 cells beyond its outermost
+    samples: along an object's extreme side a 1-mm gap was an outline, and its band was held."""
+    from endogsim.scene.particles import build_particles
+
+    spec = _two_object_spec(0.003, 0.003, 0.004, 0.004)
+    cam = Camera(torch.tensor(spec.camera.K), 320, 240)
+    g = gap_mm / 1000
+    surfaces = {1: _patch(-0.02, -g, -0.01, 0.01, 0.1), 2: _patch(0.0, 0.02, -0.01, 0.01, 0.1)}
+    sp = build_particles(surfaces, spec, cam, spec.scenario.identification)
+    x, ids = sp.particles.x.double().numpy(), sp.particles.object_ids.numpy()
+    u = x[:, 0] / x[:, 2]  # the image plane: each patch's extreme side faces the other
+    facing = (np.abs(x[:, 1]) < 0.005) & (((ids == 1) & (u > -g / 0.1 - 0.015)) | ((ids == 2) & (u < 0.015)))
+    for oid in (1, 2):
+        side = facing & (ids == oid)
+        assert side.sum() > 20
+        held = sp.pinned[side].mean()
+        assert (held == 0) if bordering else (held == 1), (oid, held)
+
+
 def test_an_organ_filled_behind_another_gives_each_place_one_material():
     """A 40 x 30 mm patch with a hole where a 12 x 12 mm organ lies 5 mm in front of it: the back patch is
     filled across its hole (the tissue goes on behind what is in front), and where its slab and the front

@@ -258,19 +258,22 @@ def outline_beside(smap: SurfaceMap, neighbours: list[SurfaceMap], gap_cells: in
 
     Args:
         smap: the object's map. neighbours: the maps of the other objects it may border.
-        gap_cells: the widest gap (cells of ``smap``) between footprints that still counts as bordering.
+        gap_cells: the widest gap (cells of ``smap``, >= 1) between footprints that still counts as bordering.
     """
     from scipy import ndimage
 
     if not neighbours:
         return smap
     nu, nv = smap.front.shape
-    ij = np.stack(np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij"), -1).reshape(-1, 2)
+    # Neighbours are looked for gap_cells beyond the map too: it reaches only 2 cells past the object's
+    # outermost samples, and a neighbour up to gap_cells beyond them borders it as well.
+    g = gap_cells
+    ij = np.stack(np.meshgrid(np.arange(-g, nu + g), np.arange(-g, nv + g), indexing="ij"), -1).reshape(-1, 2)
     centres = smap.lo + (ij + 0.5) * smap.du
     beside = np.zeros(len(centres), bool)
     for other in neighbours:
         beside |= other.covers(centres)
-    beside = ndimage.binary_dilation(beside.reshape(nu, nv), iterations=gap_cells)
+    beside = ndimage.binary_dilation(beside.reshape(nu + 2 * g, nv + 2 * g), iterations=g)[g:g + nu, g:g + nv]
     inside = np.isfinite(smap.front) | beside
     # Padding repeats the map's border cells: a neighbour that goes on beyond this map's extent goes on.
     edge = ndimage.distance_transform_edt(np.pad(inside, 1, mode="edge"))[1:-1, 1:-1]
