@@ -732,9 +732,7 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _
                                     for k, what in enumerate(kinds) if free[k]],
                         before=theta[free].tolist(), after=corrected[free].tolist(), loss=loss, refined_loss=losses,
                         stopped=stopped, seconds=time.perf_counter() - t0)
-    if len(losses) == 1:
-        notes.append(f"refined correction: no step taken at {config.refined_correction:g}x the grid ({stopped}); "
-                     "the materials stay as identified")
+    if len(losses) == 1:  # no step: the record says so wherever the correction is shown (no note repeats it)
         return ident, intervals, record, None, Simulations()
     moved = [shifted_interval(iv, float(corrected[k] - theta[k])) if free[k] else iv
              for iv in intervals for k in [here.slot(iv.object_id) + (vector.M if iv.parameter == "nu" else 0)]]
