@@ -40,7 +40,7 @@ class DemoConfig:
         frames: frames of the synthesized video (None: the scene's default).
         seed: the demo's seed: the synthesized scene's (textures, perturbations, noise) and the
             reconstruction's and identification's (their ``seed`` fields are set to it). The same seed gives
-            the same results; another seed another scene.
+            the same results; another seed another texture and relief, pressed as deep by the same probe path.
         recon: ReconConfig of the reconstruction stage (a dict: its fields over the defaults).
         identify: IdentifyConfig of the identification stage (a dict: its fields over the defaults).
         interaction: the new interaction simulated with the identified materials.

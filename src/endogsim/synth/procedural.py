@@ -22,7 +22,7 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians, rgb_to_sh_dc, rotmat_to_quat
 
 __all__ = [
-    "endoscope_camera", "fractal_noise", "mucosa_colors", "tissue_surface",
+    "endoscope_camera", "fractal_noise", "mucosa_colors", "tissue_surface", "surface_depth",
     "surface_gaussians", "tool_gaussians", "bake_lighting", "PALETTES",
 ]
 
@@ -114,11 +114,21 @@ def tissue_surface(
         keep = mask_fn(u, v)
         u, v = u[keep], v[keep]
     uv = np.stack([u, v], 1)
-    z = center[2] + bump * fractal_noise(uv, seed + 7, 25.0, octaves=2)
-    if height_fn is not None:
-        z = z + height_fn(u, v)
+    z = surface_depth(uv, center[2], seed, height_fn, bump)
     pts = np.stack([center[0] + u, center[1] + v, z], 1)
     return pts, mucosa_colors(uv + np.array(center[:2])[None], seed, palette), uv
+
+
+def surface_depth(uv: np.ndarray, distance: float, seed: int,
+                  height_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                  bump: float = 0.002) -> np.ndarray:
+    """Depth [N] (metres from the lens) of :func:`tissue_surface`'s surface at local coordinates ``uv`` [N, 2]
+    (metres): ``distance`` (its centre's z), the seed's random relief of amplitude ``bump``, ``height_fn``."""
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    z = distance + bump * fractal_noise(uv, seed + 7, 25.0, octaves=2)
+    if height_fn is not None:
+        z = z + height_fn(uv[:, 0], uv[:, 1])
+    return z
 
 
 def _normals_from_neighbours(points: np.ndarray) -> np.ndarray:

@@ -14,6 +14,9 @@ description by :mod:`endogsim.scene.particles`, for the ground truth and for ide
   * ``border``: particles within ``border`` metres of an organ's outline are held (tissue continues
     outside the field of view), except where the outline meets another organ (it goes on into that one);
   * the sim box walls (2 grid cells) are fixed.
+
+The seed gives every organ its texture and surface relief. The instrument's path is designed on seed 0's
+surface and moves with the relief beneath its tip, so the instrument presses or bites as deep for every seed.
 """
 
 from __future__ import annotations
@@ -110,6 +113,30 @@ def _outline(obj: dict[str, Any]):
     return mask, edge, height
 
 
+def _texture_seed(seed: int, obj: dict[str, Any], index: int) -> int:
+    """The seed of the texture and relief of the ``index``-th organ ``obj`` of a scene built with ``seed``."""
+    return seed * 1000 + 17 * obj["id"] + index
+
+
+def _depth_beneath(spec: dict[str, Any], seed: int, xy: np.ndarray, radius: float) -> float | None:
+    """Depth (metres from the lens) of the front-most organ surface beneath the disc of ``radius`` (metres)
+    around the point ``xy`` [2] (metres), the median over samples of the disc, for the scene built with
+    ``seed``; None when no organ lies beneath it."""
+    g = np.linspace(-radius, radius, 7)
+    du, dv = np.meshgrid(g, g)
+    disc = du ** 2 + dv ** 2 <= radius ** 2
+    points = np.asarray(xy, float)[None] + np.stack([du[disc], dv[disc]], 1)
+    depths = []
+    for k, o in enumerate(spec["objects"]):
+        mask, _, height = _outline(o)
+        uv = points - np.asarray(o["center"], float)[None]
+        inside = mask(uv[:, 0], uv[:, 1])
+        if inside.any():
+            depths.append(float(np.median(proc.surface_depth(uv[inside], spec["distance"],
+                                                             _texture_seed(seed, o, k), height))))
+    return min(depths) if depths else None
+
+
 def scene_discretisations(spec: dict[str, Any], objects: list[SceneObject], box_size: float,
                           tools: list[ToolCapsule], thickness: float) -> tuple[SimSettings, SimSettings]:
     """(ground truth, identification) discretisations of a scene from the suite's numerics keys:
@@ -146,8 +173,7 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
                                    model=o.get("model", spec["model"])))
         mask, edge, height = _outline(o)
         center = (o["center"][0], o["center"][1], D)
-        tex_seed = seed * 1000 + 17 * o["id"] + k
-        pts, col, uv = proc.tissue_surface(center, tuple(o["size"]), g_sp, tex_seed, height_fn=height,
+        pts, col, uv = proc.tissue_surface(center, tuple(o["size"]), g_sp, _texture_seed(seed, o, k), height_fn=height,
                                            palette=o.get("palette", "mucosa"), mask_fn=mask)
         parts_g.append(proc.surface_gaussians(pts, col, g_sp, o["id"]))
         anchors = dict(o.get("anchors", {}))
@@ -159,6 +185,13 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
     objects.append(SceneObject(id=t["id"], name=t["name"], klass=t["class"], rigid=True,
                                E=float(t["E"]), nu=float(t["nu"]), density=float(t["density"])))
     tip, end = np.array(t["tip"], float), np.array(t["end"], float)
+    # The path is designed on seed 0's surface; another seed's relief moves the tissue beneath the tip by up to
+    # a few millimetres, which would turn a press into a touch or start the tool inside the tissue. The tool
+    # moves with it along the view, so every seed is the same experiment on another texture and relief.
+    here, design = (_depth_beneath(spec, s, tip[:2], t["radius"]) for s in (seed, 0))
+    if here is not None and design is not None:
+        tip[2] += here - design
+        end[2] += here - design
     tool_g = proc.tool_gaussians(tip, end, t["radius"], 0.8 * g_sp, t["id"], seed=seed, jaw=t.get("jaw", False))
     # A grasper ("jaw") holds the tissue its jaws close on; a probe only pushes.
     tool = tool_capsule(t["id"], tip, end, t["radius"], tool_offsets(t["keyframes"], T),

@@ -13,7 +13,9 @@ __all__ = ["GENERATOR_REVISION", "MAX_FRAMES", "MAX_IMAGE_SIDE", "MAX_PIXEL_FRAM
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
-GENERATOR_REVISION = 9  # 9: a ground truth whose grasper tears its bite out is refused (BITE_TEAR_CELLS),
+GENERATOR_REVISION = 10  # 10: the instrument's path moves with the seed's relief beneath its tip (every seed
+#                        presses as deep; seed 0's scenes are unchanged; stop 68); 9: a ground truth whose
+#                        grasper tears its bite out is refused (BITE_TEAR_CELLS),
 #                        so `stomach` is lifted 8 mm, not 16 (stop 56); 8: a grasper's bite reaches 3 mm
 #                        beyond its tip sphere, not 1 (GRASP_MARGIN: the 1-mm bite tore out of the sheet;
 #                        stop 55); 7: tissue rests on a Coulomb support
