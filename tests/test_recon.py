@@ -652,8 +652,9 @@ def test_reconstruction_with_camera_motion_exports_poses(synthetic, tmp_path):
     assert m["camera_motion"]
     # the test frames are scored from their poses registered to them, and from the interpolated ones
     assert [a["frame"] for a in m["pose_alignment"]] == m["test_frames"]
-    assert m["psnr_masked"] >= m["psnr_masked_interpolated_pose"] - 0.05, (m["psnr_masked"],
-                                                                           m["psnr_masked_interpolated_pose"])
+    # registration minimises the scored squared error from the interpolated pose: it can only raise the PSNR
+    for registered, interpolated in zip(m["per_frame"]["psnr_masked"], m["per_frame"]["psnr_masked_interpolated_pose"]):
+        assert registered >= interpolated - 1e-9, (registered, interpolated)
     rec = load_reconstruction(tmp_path / "run")
     assert rec.viewmats.shape == (6, 4, 4) and torch.equal(rec.viewmats[0], torch.eye(4))
     traj = json.loads((tmp_path / "run" / "tool_trajectories.json").read_text())

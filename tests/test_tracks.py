@@ -71,12 +71,36 @@ def test_tracks_are_lost_under_an_occluder_and_outside_the_allowed_pixels():
     pts = np.stack([gx.ravel() + 0.5, gy.ravel() + 0.5], 1).astype(np.float32)
     tr = track_points(frames, allowed, pts, np.zeros(len(pts), int), list(range(6)))
     valid = tr.valid.numpy()
-    assert valid[:, 2].mean() > 0.9  # tracked while visible
+    assert valid[:, 2].mean() >= 0.85  # tracked while visible (but beside the patch's edge: a motion boundary)
     assert valid[:, 5].mean() < 0.1  # lost once covered, and stays lost
     # tracked backward from frame 5, a point moves left by 1.5 px a frame and enters the band at frame 1
     back = track_points(frames, allowed, np.array([[16.5 + 4.5, 20.5]], dtype=np.float32), np.array([5]),
                         list(range(6)))
     assert back.valid[0, 2:].all() and not back.valid[0, :2].any()
+
+
+def test_tracks_beside_a_sliding_instrument_stay_with_the_still_tissue():
+    """Optical flow smooths an instrument's motion into the tissue beside it, forward and backward alike, so the
+    forward-backward test keeps those steps; the motion-boundary test drops them. Still tissue, a grey bar sliding
+    right 6 px a frame between rows of tracked points: before it, 15% of the kept steps drifted over 0.5 px (up to
+    3.4 px, 0.46 px RMS)."""
+    tex, other = _texture()[:H, :W], _texture(5)[:H, :W]
+    T = 6
+    frames = np.repeat(tex[None], T, 0)
+    allowed = np.ones((T, H, W), bool)
+    for t in range(T):
+        x0 = 10 + 6 * t
+        frames[t, 40:56, x0:x0 + 50] = 0.6 + 0.3 * other[40:56, x0:x0 + 50]
+        allowed[t, 40:56, x0:x0 + 50] = False
+    rows = np.r_[30:40:2, 57:67:2]
+    gy, gx = np.meshgrid(rows, np.arange(10, 120, 2), indexing="ij")
+    pts = np.stack([gx.ravel() + 0.5, gy.ravel() + 0.5], 1).astype(np.float32)
+    tr = track_points(frames, allowed, pts, np.zeros(len(pts), int), list(range(T)))
+    valid = tr.valid.numpy()
+    err = np.linalg.norm(tr.positions.numpy() - pts[:, None], axis=-1)[valid]
+    assert valid[:, 1:].mean() > 0.5  # most of the tissue stays tracked
+    rms, far = np.sqrt((err ** 2).mean()), (err > 0.5).mean()
+    assert rms < 0.25 and far < 0.05, (rms, far)
 
 
 def test_track_points_checks_its_frames():

@@ -10,6 +10,7 @@ which fixes the gauge.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -80,21 +81,28 @@ def refine_pose(loss_of_viewmat: Callable[[torch.Tensor], torch.Tensor], viewmat
         lr, lr_final: step sizes, radians for the rotation and ``length_scale`` units for the translation.
 
     Returns:
-        The refined [4, 4] transform (detached) and the correction's [2] (rotation angle in radians,
-        translation length in metres).
+        The [4, 4] transform (detached) of lowest loss among the start and the ``steps`` iterates, and its
+        correction's [2] (rotation angle in radians, translation length in metres), so a refinement never
+        ends worse than it began by its own loss.
     """
     correction = ToolMotion([-1], torch.zeros(1, 3), 1).to(viewmat.device)
     opt = torch.optim.Adam([{"params": [correction.rotation], "lr": lr, "name": "rot"},
                             {"params": [correction.translation], "lr": lr * length_scale, "name": "trans"}])
     viewmat = viewmat.detach()
-    for i in range(steps):
+    best_loss, best = math.inf, (torch.zeros(2), viewmat)
+    for i in range(steps + 1):
+        loss = loss_of_viewmat(correction.transforms()[0, 0] @ viewmat)
+        # Adam's steps need not descend: keep the best pose seen, the start included
+        if float(loss.detach()) < best_loss:
+            with torch.no_grad():
+                size = torch.stack([correction.rotation[0, 0].norm(), correction.translation[0, 0].norm()])
+                best_loss, best = float(loss.detach()), (size, correction.transforms()[0, 0] @ viewmat)
+        if i == steps:
+            break
         rate = log_linear_lr(i / max(steps - 1, 1), lr, lr_final)
         for g in opt.param_groups:
             g["lr"] = rate * (length_scale if g["name"] == "trans" else 1.0)
-        loss = loss_of_viewmat(correction.transforms()[0, 0] @ viewmat)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    with torch.no_grad():
-        size = torch.stack([correction.rotation[0, 0].norm(), correction.translation[0, 0].norm()])
-        return correction.transforms()[0, 0] @ viewmat, size
+    return best[1].detach(), best[0].detach().to(viewmat.device)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from endogsim.evaluate.image_metrics import masked_l1, psnr, psnr_endonerf, ssim
+from endogsim.evaluate.image_metrics import mse, psnr, psnr_endonerf, ssim
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
 from endogsim.gaussians.render import render_gaussians
@@ -38,12 +38,16 @@ def fill_untrained_cameras(tr: "Trainer") -> None:
 def registered_view(tr: "Trainer", frame: int, g: Gaussians) -> tuple[Camera, torch.Tensor]:
     """``frame``'s camera after refining its pose alone against the frame's tissue pixels with the model
     frozen (:func:`~endogsim.recon.camera_motion.refine_pose`), and the correction's [2] (radians,
-    metres). ``g``: the tissue Gaussians at ``frame`` (:meth:`Trainer.gaussians_at`, without tools)."""
+    metres). ``g``: the tissue Gaussians at ``frame`` (:meth:`Trainer.gaussians_at`, without tools).
+
+    The pose minimises the masked squared error of the image that is scored (exposed, clamped to [0, 1]),
+    as BARF's test-time registration does: minimising another error (L1) can lower the PSNR it is judged by.
+    """
     gt, m = tr.frames[frame], tr.tissue_mask[frame]
 
     def loss(viewmat: torch.Tensor) -> torch.Tensor:
         cam = Camera(tr.camera.K, tr.camera.width, tr.camera.height, viewmat)
-        return masked_l1(tr.expose(render_gaussians(g, cam, backend=tr.cfg.backend).rgb, frame), gt, m)
+        return mse(tr.expose(render_gaussians(g, cam, backend=tr.cfg.backend).rgb, frame).clamp(0, 1), gt, m)
 
     with torch.enable_grad():
         viewmat, size = refine_pose(loss, tr.view(frame).viewmat, tr.extent, tr.cfg.test_pose_steps)
