@@ -89,14 +89,14 @@ def refine_pose(loss_of_viewmat: Callable[[torch.Tensor], torch.Tensor], viewmat
     opt = torch.optim.Adam([{"params": [correction.rotation], "lr": lr, "name": "rot"},
                             {"params": [correction.translation], "lr": lr * length_scale, "name": "trans"}])
     viewmat = viewmat.detach()
-    best_loss, best = math.inf, (torch.zeros(2), viewmat)
+    best_loss, best_pose, best_size = math.inf, viewmat, torch.zeros(2, device=viewmat.device)
     for i in range(steps + 1):
-        loss = loss_of_viewmat(correction.transforms()[0, 0] @ viewmat)
-        # Adam's steps need not descend: keep the best pose seen, the start included
-        if float(loss.detach()) < best_loss:
-            with torch.no_grad():
-                size = torch.stack([correction.rotation[0, 0].norm(), correction.translation[0, 0].norm()])
-                best_loss, best = float(loss.detach()), (size, correction.transforms()[0, 0] @ viewmat)
+        pose = correction.transforms()[0, 0] @ viewmat
+        loss = loss_of_viewmat(pose)
+        value = float(loss.detach())
+        if value < best_loss:  # Adam's steps need not descend: keep the best pose seen, the start included
+            best_loss, best_pose = value, pose.detach()
+            best_size = torch.stack([correction.rotation[0, 0].norm(), correction.translation[0, 0].norm()]).detach()
         if i == steps:
             break
         rate = log_linear_lr(i / max(steps - 1, 1), lr, lr_final)
@@ -105,4 +105,4 @@ def refine_pose(loss_of_viewmat: Callable[[torch.Tensor], torch.Tensor], viewmat
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    return best[1].detach(), best[0].detach().to(viewmat.device)
+    return best_pose, best_size
