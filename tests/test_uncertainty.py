@@ -231,6 +231,30 @@ def test_values_the_data_do_not_exclude_lie_inside_the_interval():
     assert floor.interval[1] > 10 ** (opt + 1.0) and "significantly lower" not in floor.reason
 
 
+def test_an_optimum_on_the_search_box_end_is_said_to_be_the_boxs():
+    """A loss that falls all the way to the box's upper end (CholecSeg8K's liver: 516 kPa, the end set by the
+    simulation's stability) puts the estimate there; the report says that the value is the box's, not a
+    measurement. An optimum inside the box is not told so."""
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E.fill_(6.0)
+
+    def falling(trial) -> dict[int, float]:
+        e = float(trial.log10_E.detach()[0])
+        return {t: 1.0 + 0.01 * (6.0 - e) * (1.0 + 0.1 * (t % 3)) for t in range(12)}
+
+    E = parameter_intervals(params, {1: "liver"}, falling, lambda trial: ([1.7], [6.0]), False)[0]
+    assert E.best == pytest.approx(1e6) and E.interval[1] == pytest.approx(1e6) and not E.identifiable
+    assert "the optimum lies on the search box's upper end (1e+06 Pa)" in E.reason
+    assert "not a measurement" in E.reason
+    _, inside, _ = _optimum_above_the_prior()
+    E = parameter_intervals(inside, {1: "liver"}, falling, lambda trial: ([1.7], [6.0]), False)[0]
+    assert "search box's" not in E.reason
+
+
 def test_critical_z():
     assert critical_z(10) == pytest.approx(0.5 * 1.8331, abs=1e-4)  # t_9, 95th percentile
     assert critical_z(100_000) == pytest.approx(0.5 * 1.6449, abs=1e-3)  # the normal limit
