@@ -233,7 +233,7 @@ def test_values_the_data_do_not_exclude_lie_inside_the_interval():
 
 def test_an_optimum_on_the_search_box_end_is_said_to_be_the_boxs():
     """A loss that falls all the way to the box's upper end (CholecSeg8K's liver: 516 kPa, the end set by the
-    simulation's stability) puts the estimate there; the report says that the value is the box's, not a
+    simulation's stability) puts the optimum there; its reason says that the optimum is the box's, not a
     measurement. An optimum inside the box is not told so."""
     import torch
 

@@ -105,12 +105,12 @@ LEVEL = 0.90
 #: side with no significant rise nearby is tested once more at the farthest value identification could reach.
 E_STEPS = (0.1, 0.3, 1.0, math.inf)
 NU_STEPS = (0.02, 0.06, math.inf)
+#: How near the search box's end (decades of E, units of nu) an optimum lies on it: nothing beyond was searched.
+AT_BOX_END = 1e-4
 #: The grid convergence index's assumed order of convergence and safety factor (Roache 1994): conditions on
 #: grid nodes are first order in the cell size, but refining the suite's problems to 4x on a GPU showed
 #: that order only without gravity (docs/IDENTIFICATION.md section 3), so the factor is Roache's for two
 #: grids whose order is not verified, 3, not the 1.25 he allows where it is.
-AT_BOX_END = 1e-4
-"""How near the search box's end (decades of E, units of nu) an optimum lies on it."""
 GCI_ORDER = 1.0
 GCI_SAFETY = 3.0
 R = TypeVar("R")
