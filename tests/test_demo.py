@@ -13,9 +13,10 @@ from typer.testing import CliRunner
 from endogsim.cli.main import app
 from endogsim.errors import DataError
 from endogsim.pipeline.demo import DemoConfig, run_demo, synthesize_observed
+from endogsim.synth.suite import DEMO_SCENE
 
-# The demo on 4 frames of tiny with 12 reconstruction iterations and 1 identification iteration (its 90%
-# intervals included): ~14 s a run on one CPU core.
+# The demo on 4 frames of its scene (tiny_lift) with 12 reconstruction iterations and 1 identification iteration
+# (its 90% intervals included): ~14 s a run on one CPU core.
 REDUCED = dict(frames=4, recon={"resolution_scale": 1.0, "iters": 12, "track_warmup_iters": 20},
                identify={"iters": 1})
 
@@ -104,7 +105,7 @@ def test_another_seed_gives_another_scene(seed0_twice, tmp_path):
 
 def test_a_folder_of_another_seed_is_refused(seed0_twice):
     (a, _), _ = seed0_twice
-    with pytest.raises(DataError, match="seed 0, not 'tiny' with seed 1"):
+    with pytest.raises(DataError, match=f"seed 0, not '{DEMO_SCENE}' with seed 1"):
         run_demo(a, DemoConfig(**REDUCED, seed=1))
     res = CliRunner().invoke(app, ["demo", "--out", str(a), "--seed", "2"])  # --seed reaches the demo
     assert res.exit_code == 2 and "with seed 2" in res.output

@@ -93,9 +93,9 @@ def check_coarser_than_ground_truth(scenes: Sequence[str], refine: float,
 
 
 def _default_scenes() -> list[str]:
-    from endogsim.synth.suite import suite_scene_names
+    from endogsim.synth.suite import SMALL_SCENES, suite_scene_names
 
-    return [n for n in suite_scene_names() if n != "tiny"]
+    return [n for n in suite_scene_names() if n not in SMALL_SCENES]
 
 
 def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathLike, iters: int = DEFAULT_ITERS,

@@ -128,7 +128,8 @@ def register(bench_app: typer.Typer) -> None:
                                  "unless --ray-address is given)."),
         ray_address: Optional[str] = typer.Option(None, "--ray-address",
                                                   help="Ray cluster address (e.g. ray://host:10001 or auto); implies --ray."),
-        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but tiny)."),
+        scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated suite scenes (default: all but "
+                                             "the small scenes tiny and tiny_lift)."),
         iters: Optional[int] = typer.Option(None, "--iters", help=f"Iterations of the optimised runs (default "
                                             f"{DEFAULT_ITERS}; quick 2)."),
         runs: Optional[str] = typer.Option(None, "--runs", help=f"Comma-separated runs to do, of {', '.join(RUN_KEYS)} "

@@ -109,7 +109,9 @@ def register(app: typer.Typer) -> None:
     def demo_cmd(
         out: Path = typer.Option(Path("demo"), "--out", "-o", callback=output_folder,
                                  help="Output folder (re-run to resume)."),
-        scene: str = typer.Option("tiny", "--scene", help="Benchmark scene to synthesise (see `endogsim synth --help`)."),
+        scene: Optional[str] = typer.Option(None, "--scene", help="Benchmark scene to synthesise (see `endogsim "
+                                            "synth --help`; default tiny_lift, a grasper lifting a tissue patch; "
+                                            "tiny: a probe pressing it)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the synthesized scene, the reconstruction and the "
                                  "identification (same seed and thread count: same results, at any speed)."),
         threads: int = typer.Option(1, "--threads", help="Torch threads for the demo. 1: the same numbers on every "
@@ -145,7 +147,9 @@ def register(app: typer.Typer) -> None:
 
         from endogsim.pipeline.demo import DemoConfig, run_demo
 
-        cfg = DemoConfig(scene=scene, seed=seed, threads=threads, workers=workers)  # checks both >= 1
+        cfg = DemoConfig(seed=seed, threads=threads, workers=workers)  # checks both >= 1
+        if scene is not None:
+            cfg.scene = scene
         if recon_iters is not None:
             cfg.recon = replace(cfg.recon, iters=recon_iters)
         if identify_iters is not None:

@@ -1,6 +1,7 @@
 """``endogsim demo``: the whole pipeline on a built-in procedural scene, with ground truth to compare against.
 
-1. synthesise the ``tiny`` benchmark scene (simulated with known materials): the "observed" video;
+1. synthesise the ``tiny_lift`` benchmark scene (:data:`DEMO_SCENE`, simulated with known materials): the
+   "observed" video;
 2. :func:`~endogsim.pipeline.run.run_pipeline` on its frames alone: reconstruct, build the scenario with the
    benchmark's boundary settings, initialise materials from the prior, identify, simulate a new interaction,
    write the report;
@@ -27,6 +28,7 @@ import torch
 from endogsim.identify.config import IdentifyConfig
 from endogsim.io.atomic import write_json_atomic
 from endogsim.recon.config import ReconConfig
+from endogsim.synth.suite import DEMO_SCENE
 
 __all__ = ["DemoConfig", "run_demo", "synthesize_observed"]
 
@@ -40,7 +42,7 @@ class DemoConfig:
         frames: frames of the synthesized video (None: the scene's default).
         seed: the demo's seed: the synthesized scene's (textures, perturbations, noise) and the
             reconstruction's and identification's (their ``seed`` fields are set to it). The same seed gives
-            the same results; another seed another texture and relief, pressed as deep by the same probe path.
+            the same results; another seed another texture and relief, reached as deep by the same instrument path.
         recon: ReconConfig of the reconstruction stage (a dict: its fields over the defaults).
         identify: IdentifyConfig of the identification stage (a dict: its fields over the defaults).
         interaction: the new interaction simulated with the identified materials.
@@ -57,10 +59,10 @@ class DemoConfig:
             do not depend on it, only the time does.
     """
 
-    scene: str = "tiny"
+    scene: str = DEMO_SCENE
     frames: int | None = None
     seed: int = 0
-    # Fixed iteration counts (600 reconstruction iterations take ~40 s on one core of a 2-core CPU for tiny);
+    # Fixed iteration counts (tiny_lift's reconstruction stage, 600 iterations, takes ~60 s on a 2-core CPU);
     # the time budgets are only safety stops, far beyond that.
     recon: ReconConfig = field(default_factory=lambda: ReconConfig(resolution_scale=1.0, iters=600, time_budget_s=900.0))
     identify: IdentifyConfig = field(default_factory=lambda: IdentifyConfig(iters=10, time_budget=900.0))

@@ -8,8 +8,8 @@ from typing import Any
 
 from endogsim.errors import DataError
 
-__all__ = ["GENERATOR_REVISION", "MAX_FRAMES", "MAX_IMAGE_SIDE", "MAX_PIXEL_FRAMES", "MAX_PARTICLES", "check_size",
-           "load_suite", "suite_scene_names", "scene_spec"]
+__all__ = ["DEMO_SCENE", "GENERATOR_REVISION", "SMALL_SCENES", "MAX_FRAMES", "MAX_IMAGE_SIDE", "MAX_PIXEL_FRAMES",
+           "MAX_PARTICLES", "check_size", "load_suite", "suite_scene_names", "scene_spec"]
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
@@ -23,6 +23,13 @@ GENERATOR_REVISION = 10  # 10: the instrument's path moves with the seed's relie
 #                        equilibrium (8 frames at 200/s, checked); 5: organs that meet are not held there,
 #                        one material per place (stop 32)
 
+#: Small scenes for the tests and the demo (seconds on a CPU), left out of the suite's tables: `endogsim bench
+#: suite` runs the others unless told otherwise (``--scenes``).
+SMALL_SCENES = ("tiny", "tiny_lift")
+#: The demo's scene: a grasper bites the patch and lifts it 7 mm. The lift's shape weighs the tissue's stiffness
+#: against its weight, so its video determines E; ``tiny``'s probe, pressing the same patch, sets the motion nearly
+#: whatever E is (docs/IDENTIFICATION.md section 5).
+DEMO_SCENE = "tiny_lift"
 
 # Limits of a synthesized scene, checked before the work that would exceed them. Rendering holds every
 # frame in memory (about 40 bytes a pixel: RGB, depth, alpha, ids, flow), so MAX_PIXEL_FRAMES bounds it to
