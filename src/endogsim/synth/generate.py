@@ -52,6 +52,7 @@ from endogsim.physics import (
     drive_gaussians,
     simulate,
 )
+from endogsim.scene.coverage import PARTED_LIMIT, parted_share
 from endogsim.scene.particles import (
     SceneParticles,
     build_particles,
@@ -146,6 +147,21 @@ def _check_bites(b: BuiltScene, filled: SceneParticles, scenario: Scenario, posi
                 f"tissue around it lies more than the {bite['tolerance_cells']:g} grid cells a B-spline stencil "
                 f"reaches from the bite (median; {bite['ring_cells_max']:.2f} cells at frame {bite['frame_of_max']}): "
                 f"numerical fracture, by an amount the grid sets; give the grasper a gentler path")
+
+
+def _check_parted(b: BuiltScene, ids: np.ndarray) -> None:
+    """Refuse a ground truth whose tissue parts (``ids`` [T, H, W], its rendered object ids). Beside a grasper's bite
+    drawn sideways a sheet parts by numerical fracture, by an amount the grid sets, which identification's
+    continuum cannot follow. The bite check (:func:`_check_bites`) reads the median distance around the bite and
+    misses a sheet that parts on one side of it."""
+    share = parted_share(ids)
+    if share.max() > PARTED_LIMIT:
+        first = int(np.argmax(share > PARTED_LIMIT))
+        raise SimulationError(
+            f"scene {b.name}: the ground truth's tissue parts: from frame {first} on, the background shows through "
+            f"more than {100 * PARTED_LIMIT:g}% of its frame-0 footprint ({100 * share.max():.2f}% at frame "
+            f"{int(np.argmax(share))}): numerical fracture beside an instrument, by an amount the grid sets; give the "
+            "instrument a gentler path")
 
 
 def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):
@@ -292,6 +308,7 @@ def synthesize(scene_name: str, out_dir: str | os.PathLike, seed: int = 0, frame
         progress("simulate", 1, 1)
     cb_r = (lambda t: progress("render", t + 1, b.frames)) if progress else None
     r = render_built(b, tx, tcov, progress=cb_r)
+    _check_parted(b, r["ids"])
     means0, cov0 = _frame_state(b, tx, tcov, b.gaussians.covariances().float(), 0)
     log_scales, quats = covariance_to_scale_rot(cov0)
     frame0 = b.gaussians.with_(means=means0, log_scales=log_scales, quats=quats)
