@@ -15,9 +15,10 @@ from endogsim.errors import DataError
 from endogsim.pipeline.demo import DemoConfig, run_demo, synthesize_observed
 from endogsim.synth.suite import DEMO_SCENE
 
-# The demo on 4 frames of its scene (tiny_lift) with 12 reconstruction iterations and 1 identification iteration
-# (its 90% intervals included): ~14 s a run on one CPU core.
-REDUCED = dict(frames=4, recon={"resolution_scale": 1.0, "iters": 12, "track_warmup_iters": 20},
+# The demo on 6 frames of its scene (tiny_lift) with 12 reconstruction iterations and 1 identification iteration
+# (its 90% intervals included). The grasper's path spans the clip: on 4 frames it lifts the patch 7 mm in 15 ms
+# and the ground truth parts beside the bite (0.10% of the footprint on seed 0), which the generator refuses.
+REDUCED = dict(frames=6, recon={"resolution_scale": 1.0, "iters": 12, "track_warmup_iters": 20},
                identify={"iters": 1})
 
 
@@ -95,10 +96,10 @@ def test_another_seed_gives_another_scene(seed0_twice, tmp_path):
     spec0 = json.loads((a / "scene_truth" / "scene.json").read_text())
     spec1 = json.loads((other / "scene.json").read_text())
     assert (spec0["seed"], spec1["seed"]) == (0, 1)
-    assert spec0["objects"] == spec1["objects"] and spec0["frames"] == spec1["frames"] == 4  # same suite scene
+    assert spec0["objects"] == spec1["objects"] and spec0["frames"] == spec1["frames"] == REDUCED["frames"]  # same scene
     im0 = sorted((a / "scene_truth" / "images").glob("*.png"))
     im1 = sorted((other / "images").glob("*.png"))
-    assert len(im0) == len(im1) == 4
+    assert len(im0) == len(im1) == REDUCED["frames"]
     diff = np.abs(iio.imread(im0[0]).astype(float) - iio.imread(im1[0]).astype(float)).mean()
     assert diff > 2.0, diff  # other textures (8-bit levels)
 

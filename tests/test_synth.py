@@ -232,8 +232,9 @@ def test_parted_share_counts_a_hole_in_the_tissue_not_a_receding_outline():
 
 
 def test_a_ground_truth_whose_tissue_parts_is_refused(monkeypatch, tmp_path):
-    """The demo's patch bitten and drawn 4.5 mm sideways as it is lifted parts beside the bite (stop 71: 0.46% of
-    its footprint by frame 8; ~20 s); lifted straight, as the suite's scene is, it opens nothing (the demo's tests)."""
+    """The demo's patch bitten and drawn 4.5 mm sideways as it is lifted parts beside the bite (seed 0: over 0.46%
+    of its footprint at frame 8; ~20 s); lifted straight, as the suite's scene is, it opens nothing (the demo's
+    tests synthesize it)."""
     import endogsim.synth.scenes as scenes
     from endogsim.errors import SimulationError
     from endogsim.synth.suite import scene_spec

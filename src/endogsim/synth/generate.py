@@ -161,7 +161,7 @@ def _check_parted(b: BuiltScene, ids: np.ndarray) -> None:
             f"scene {b.name}: the ground truth's tissue parts: from frame {first} on, the background shows through "
             f"more than {100 * PARTED_LIMIT:g}% of its frame-0 footprint ({100 * share.max():.2f}% at frame "
             f"{int(np.argmax(share))}): numerical fracture beside an instrument, by an amount the grid sets; give the "
-            "instrument a gentler path")
+            "instrument a gentler path, or the clip more frames (the path spans the clip)")
 
 
 def _frame_state(b: BuiltScene, tx: torch.Tensor, tcov: torch.Tensor, cov0: torch.Tensor, t: int):
