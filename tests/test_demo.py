@@ -96,7 +96,7 @@ def test_another_seed_gives_another_scene(seed0_twice, tmp_path):
     spec0 = json.loads((a / "scene_truth" / "scene.json").read_text())
     spec1 = json.loads((other / "scene.json").read_text())
     assert (spec0["seed"], spec1["seed"]) == (0, 1)
-    assert spec0["objects"] == spec1["objects"] and spec0["frames"] == spec1["frames"] == REDUCED["frames"]  # same scene
+    assert spec0["objects"] == spec1["objects"] and spec0["frames"] == spec1["frames"] == REDUCED["frames"]
     im0 = sorted((a / "scene_truth" / "images").glob("*.png"))
     im1 = sorted((other / "images").glob("*.png"))
     assert len(im0) == len(im1) == REDUCED["frames"]
