@@ -127,10 +127,8 @@ def parted_share(ids: np.ndarray, margin: int = 3) -> np.ndarray:
     parted = np.zeros(len(ids))
     for t, frame in enumerate(ids):
         background = frame == 0
-        regions, _ = ndimage.label(background)
-        joined = np.unique(regions[outside & background])
-        hole = background & ~np.isin(regions, joined[joined > 0])
-        parted[t] = (hole & footprint).sum()
+        joined = ndimage.binary_propagation(outside & background, mask=background)  # reached from outside
+        parted[t] = (background & ~joined & footprint).sum()
     return parted / max(int(footprint.sum()), 1)
 
 
