@@ -255,7 +255,8 @@ def test_the_iterations_simulations_score_a_field_as_a_new_simulation_would(run3
     """The identified field (here the best iterate) is scored from the iteration's own simulation of the
     same materials: the same scores to the last digit as simulating it again. The initial field is found
     only where the optimiser's parameters give its materials to the last bit (nu's round trip through its
-    raw value may change them; then it is simulated), and a field no iteration simulated is simulated."""
+    raw value may change them; then it is simulated, unless the simulator's float32 inputs are the same), and a
+    field no iteration simulated is simulated."""
     from endogsim.identify.report import evaluate_field
 
     res, _ = run3
@@ -267,6 +268,16 @@ def test_the_iterations_simulations_score_a_field_as_a_new_simulation_would(run3
         assert np.array_equal(kept.rgb, fresh.rgb) and kept.coverage.to_json() == fresh.coverage.to_json()
     other = field_from_truth(problem, 3.0)
     assert res.simulations.find(other.simulator_materials()) is None
+    assert res.simulations.find(other.simulator_materials(), problem.simulator()) is None
+    # nu one float64 step away (its round trip through the raw parameter can do that) gives the simulator the
+    # same float32 inputs: found with the scene's simulator, scored as a new simulation scores it.
+    nudged = MaterialField([r if r.rigid else r.model_copy(update={"nu": math.nextafter(r.nu, 1.0)})
+                            for r in res.field.records])
+    assert res.simulations.find(nudged.simulator_materials()) is None
+    assert res.simulations.find(nudged.simulator_materials(), problem.simulator()) is not None
+    kept, fresh = evaluate_field(problem, nudged, known=res.simulations), evaluate_field(problem, nudged)
+    assert (kept.epe, kept.psnr, kept.ssim) == (fresh.epe, fresh.psnr, fresh.ssim)
+    assert np.array_equal(kept.rgb, fresh.rgb)
 
 
 def test_loss_decreases_and_E_moves_towards_the_truth(run3):
@@ -424,6 +435,9 @@ def test_outputs_written(problem, run3, tmp_path):
     for k in ("re_mean", "re_E", "re_nu", "re_G", "re_K", "epe", "psnr", "ssim", "seconds", "iterations"):
         assert k in disk and math.isfinite(disk[k]), k
     assert disk["iterations"] == 3 and "tissue" in disk["re_objects"]
+    stages = disk["stage_seconds"]  # wall time by stage: the stages this run had, each timed
+    assert stages["iterations"] == disk["seconds"] and set(stages) >= {"iterations", "evaluation"}
+    assert all(v >= 0 for v in stages.values())
     assert disk["stopped"] == "iters" and disk["stopped_by_budget"] is False
     assert disk["frame_stride"] == 2 and "5 of 10 frames compared (stride 2)" in (run_dir / "summary.txt").read_text()
     auto = write_outputs(tmp_path / "auto", problem, res, IdentifyConfig(intervals=False), init_name="test", video=False)

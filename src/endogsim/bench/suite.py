@@ -136,7 +136,8 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
     Returns:
         {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
-        wall_seconds (the whole identification: optimisation, intervals and evaluation), materials}},
+        wall_seconds (the whole identification: optimisation, intervals and evaluation), stage_seconds (its
+        stages', metrics.json's), materials}},
         "wall_seconds" (of the run that made the record), "reused" (whether this call reused it)};
         ``materials`` is :func:`object_results` (intervals only in ``prior_on``).
     """
@@ -191,6 +192,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         rec["stopped"] = m.get("stopped")
         rec["stopped_by_budget"] = m.get("stopped_by_budget", False)
         rec["wall_seconds"] = time.perf_counter() - t_run
+        rec["stage_seconds"] = m.get("stage_seconds")
         rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
         done[key] = rec

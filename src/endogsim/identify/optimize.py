@@ -183,6 +183,8 @@ class IdentifyResult:
             was made: ``config.refined_correction`` None, or no parameter the video determines).
         refined: the refined scene ``field`` belongs to after a correction that moved it (None: the
             identification's own discretisation); ``refined_simulations`` holds its simulation there.
+        stage_seconds: wall time (s) of this call's stages after the iterations: "intervals" (the evaluation
+            of the identified field included where it ran beside their trials) and "refined_correction".
     """
 
     field: MaterialField
@@ -200,6 +202,7 @@ class IdentifyResult:
     correction: Correction | None = None
     refined: SimScene | None = None
     refined_simulations: Simulations = field(default_factory=Simulations)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
@@ -409,12 +412,13 @@ def side_by_side(problem: SimScene, init_field: MaterialField, vector: _Paramete
 
 
 def coarse_and_refined(problem: SimScene, refined: SimScene, init_field: MaterialField, vector: _ParameterVector,
-                       obs: Observations, camera, config: IdentifyConfig,
+                       obs: Observations, camera, config: IdentifyConfig, warmed: bool = False,
                        ) -> Callable[[list[np.ndarray], list[np.ndarray]], tuple[list[Evaluation], list[Evaluation]]]:
     """(thetas, refined thetas) -> their :class:`Evaluation` on ``problem`` and on ``refined`` (the same scene at
     another discretisation), all simulated side by side, the refined ones first (the longest start first; the
-    first simulation of ``problem`` alone: Warp builds its kernels on a scene's first simulation)."""
-    warmed = []
+    first simulation of ``problem`` alone unless ``warmed``, ``problem`` simulated in this process already:
+    Warp builds its kernels on a scene's first simulation)."""
+    built = [warmed]  # whether a simulation ran, so that the kernels are built (the closure below sets it)
 
     def evaluate(thetas: list[np.ndarray], refined_thetas: list[np.ndarray],
                  ) -> tuple[list[Evaluation], list[Evaluation]]:
@@ -422,8 +426,8 @@ def coarse_and_refined(problem: SimScene, refined: SimScene, init_field: Materia
                  for t in refined_thetas]
         tasks += [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, camera, config)
                   for t in thetas]
-        first = [] if warmed or not thetas else [tasks.pop(len(refined_thetas))()]
-        warmed.append(True)
+        first = [] if built[0] or not thetas else [tasks.pop(len(refined_thetas))()]
+        built[0] = True
         done = run_independent(tasks, min(problem.independent_simulations(), refined.independent_simulations()))
         n = len(refined_thetas)
         return first + done[n:], done[:n]
@@ -634,6 +638,7 @@ def identify(
 
     intervals: list[ParameterInterval] = []
     evaluated: dict = {}  # {"field", "evaluation"}: the field the slices imply, evaluated during the intervals
+    stage_seconds, t_stage = {}, time.perf_counter()
     if best is None:  # optimisation off: the initial materials are the answer
         ident = MaterialField([r.model_copy() for r in init_field.records], meta=dict(init_field.meta))
     else:
@@ -680,28 +685,34 @@ def identify(
                 then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
                 min_relative_rise=cfg.tol)
         ident = identified_field(init_field, final, intervals)
+        if cfg.intervals:
+            stage_seconds["intervals"] = time.perf_counter() - t_stage
     correction, refined, refined_simulations = None, None, Simulations()
     if best is not None and cfg.refined_correction is not None:
+        t_stage = time.perf_counter()
         ident, intervals, correction, refined, refined_simulations = corrected_to_refined(
-            problem, init_field, vector, ident, intervals, obs, cam, cfg, notes)
+            problem, init_field, vector, ident, intervals, obs, cam, cfg, notes, warmed=done_here > 0)
+        stage_seconds["refined_correction"] = time.perf_counter() - t_stage
     evaluation = evaluated["evaluation"] if evaluated and same_simulation(evaluated["field"], ident) else None
     return IdentifyResult(field=ident, init_field=init_field, history=history,
                           best_iteration=-1 if best is None else int(best["iteration"]),
                           best_loss=math.nan if best is None else float(best["loss"]),
                           iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
                           evaluation=evaluation if refined is None else None, simulations=simulations,
-                          correction=correction, refined=refined, refined_simulations=refined_simulations)
+                          correction=correction, refined=refined, refined_simulations=refined_simulations,
+                          stage_seconds=stage_seconds)
 
 
 def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _ParameterVector,
                          ident: MaterialField, intervals: list[ParameterInterval], obs: Observations, camera,
-                         config: IdentifyConfig, notes: list[str],
+                         config: IdentifyConfig, notes: list[str], warmed: bool = False,
                          ) -> tuple[MaterialField, list[ParameterInterval], Correction | None, SimScene | None,
                                     Simulations]:
     """The identified field corrected to the discretisation refined ``config.refined_correction`` times
     (:mod:`endogsim.identify.refined_correction`): the parameters whose value the video gave (identified, a
     one-sided estimate, or every parameter without intervals) move, their intervals with them, and their sources
-    follow the moved intervals (:func:`identified_field`).
+    follow the moved intervals (:func:`identified_field`). ``warmed``: ``problem`` was simulated in this process
+    already (its kernels are built: the correction's first simulations start side by side).
 
     Returns:
         (the field, the intervals, the correction's record (None: no parameter to move, or the refined scene
@@ -725,7 +736,7 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _
         return ident, intervals, None, None, Simulations()
     t0 = time.perf_counter()
     corrected, ev, loss, losses, stopped = correct_to_refined(
-        theta, free, coarse_and_refined(problem, refined, init_field, vector, obs, camera, config), vector.box,
+        theta, free, coarse_and_refined(problem, refined, init_field, vector, obs, camera, config, warmed), vector.box,
         vector.steps(), config.correction_steps, config.tol)
     record = Correction(factor=config.refined_correction,
                         parameters=[f"{problem.labels[slots[k % vector.M]].name} {what}"

@@ -6,7 +6,8 @@ Run folder written by :func:`write_outputs` (every file atomically):
   metrics.json                RE (per object and mean, ``re_mean``) and |E/E_true - 1| (``e_rel_error_*``)
                               where the scene has ground truth; ``intervals`` (90%) and ``identifiable``
                               (per object and parameter, with the evidence); ``epe`` (px), ``psnr`` (dB),
-                              ``ssim``, ``seconds``, ``iterations``, final loss, settings
+                              ``ssim``, ``seconds`` (the iterations), ``stage_seconds`` (wall time of
+                              each stage), ``iterations``, final loss, settings
   history.json                per-iteration loss, parameters, gradients
   loss.png, parameters.png    loss and parameter trajectories
   comparison.mp4              observed | simulated | flow error (|U_sim - U_gt| or, without ground truth,
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +90,7 @@ def evaluate_field(problem: SimScene, fld: MaterialField, observed_flow: np.ndar
     same materials in ``known`` (e.g. :attr:`IdentifyResult.simulations`) is used instead of simulating again."""
     with torch.no_grad():
         mats = fld.simulator_materials()
-        res = None if known is None else known.find(mats)
+        res = None if known is None else known.find(mats, problem.simulator())
         if res is None:
             res = problem.simulator().simulate(mats)
         r = render_sequence(problem, res.positions, res.F, problem.camera)
@@ -254,13 +256,17 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)
-    ev = result.evaluation
+    ev, t_eval = result.evaluation, time.perf_counter()
     # The observed flow (pulling: 41 MB) is read only for an evaluation still to make.
     to_evaluate = evaluate_init or not isinstance(ev, Evaluation)
     obs_flow = reference_observed_flow(problem, config, run) if to_evaluate else None
     if not isinstance(ev, Evaluation):  # where the field belongs
         ev = (evaluate_field(problem, result.field, obs_flow, result.simulations) if result.refined is None else
               evaluate_field(result.refined, result.field, obs_flow, result.refined_simulations))
+    # Wall time by stage: the iterations (over resumes), the intervals and the refined correction (this call),
+    # and the evaluation left to do here (none where it ran beside the intervals' trials).
+    stage_seconds = {"iterations": result.seconds, **result.stage_seconds,
+                     "evaluation": time.perf_counter() - t_eval}
     re = material_errors(problem, result.field)
     stride = config.stride(problem.num_frames)
     metrics: dict = {
@@ -270,6 +276,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "frame_stride": stride,  # the one used (the config's None: automatic)
         "iterations": result.iterations, "best_iteration": result.best_iteration, "best_loss": result.best_loss,
         "stopped": result.stopped, "stopped_by_budget": result.stopped == "time_budget", "seconds": result.seconds,
+        "stage_seconds": stage_seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
         "discretisation": discretisation_record(problem, config.refine),

@@ -27,7 +27,7 @@ from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.rasterize_torch import world_to_camera
 from endogsim.gaussians.render import rasterize
-from endogsim.physics import GradMode, ObjectMaterials, SimResult, drive_gaussians
+from endogsim.physics import GradMode, ObjectMaterials, SimResult, Simulator, drive_gaussians
 from endogsim.recon.exposure import apply_exposure
 from endogsim.scene.folder import SimScene
 
@@ -69,11 +69,15 @@ def same_materials(a: ObjectMaterials, b: ObjectMaterials) -> bool:
     """Whether the simulator gets the same materials from ``a`` and ``b``, to the last bit (every object's E,
     nu, density, constitutive model and yield stress; NaN, an id without a record, equals NaN): their
     simulations are then the same."""
-    def same(x: torch.Tensor, y: torch.Tensor) -> bool:
-        x, y = x.detach(), y.detach()
-        return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
+    return all(_equal(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
 
-    return all(same(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
+
+def _equal(x, y) -> bool:
+    """Equal values, or tensors equal entry by entry (NaN, an id without a record, equals NaN)."""
+    if not isinstance(x, torch.Tensor):
+        return x == y
+    x, y = x.detach(), y.detach()
+    return x.shape == y.shape and bool(((x == y) | (x.isnan() & y.isnan())).all())
 
 
 class Simulations:
@@ -88,9 +92,15 @@ class Simulations:
         self._kept[slot] = (materials.detached(),
                             replace(result, positions=result.positions.detach(), F=result.F.detach()))
 
-    def find(self, materials: ObjectMaterials) -> SimResult | None:
-        """A kept simulation of exactly ``materials``, or None."""
-        return next((r for m, r in self._kept.values() if same_materials(m, materials)), None)
+    def find(self, materials: ObjectMaterials, simulator: Simulator | None = None) -> SimResult | None:
+        """A kept simulation of exactly ``materials``, or None. With the scene's ``simulator``, one whose
+        materials give it the same inputs (:meth:`~endogsim.physics.Simulator.engine_inputs`) counts too."""
+        found = next((r for m, r in self._kept.values() if same_materials(m, materials)), None)
+        if found is None and simulator is not None and self._kept:
+            want = simulator.engine_inputs(materials)
+            found = next((r for m, r in self._kept.values()
+                          if all(map(_equal, simulator.engine_inputs(m), want))), None)
+        return found
 
 
 def frame_gaussians(problem: SimScene, positions: torch.Tensor, F: torch.Tensor, cov0: torch.Tensor, t: int):
