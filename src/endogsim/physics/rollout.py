@@ -307,11 +307,15 @@ class Simulator:
                 p = self.particles
                 v0 = p.v if p.v is not None else torch.zeros_like(p.x)
             step = self.timestep(materials, v0)
-            m = self._scaled(materials)
-            model, yield_sim = self._static(m)
-            E_sim = self.scenario.box.modulus_to_sim(m.E.double())
+            E, nu, density, model, yield_stress = self._engine_materials(materials)
             return (step.substeps, step.dt, model,
-                    *(t.detach().cpu().to(torch.float32) for t in (E_sim, m.nu, m.density, yield_sim)))
+                    *(t.detach().cpu().to(torch.float32) for t in (E, nu, density, yield_stress)))
+
+    def _engine_materials(self, materials: ObjectMaterials) -> tuple[torch.Tensor, ...]:
+        """(E, nu, density, model ids, yield stress) of ``materials`` as the engine's material table takes them
+        for a forward rollout: moduli in sim units, the density mass-scaled."""
+        m = self._scaled(materials)
+        return (self.scenario.box.modulus_to_sim(m.E.double()), m.nu, m.density, *self._static(m))
 
     def _static(self, materials: ObjectMaterials):
         box = self.scenario.box
@@ -350,9 +354,7 @@ class Simulator:
             x0 = p.x.detach()
             v0 = (p.v if p.v is not None else torch.zeros_like(x0)) if v0 is None else v0
             step = self.timestep(materials, v0)
-            materials = self._scaled(materials)
-            mats = self.engine.material_table(box.modulus_to_sim(materials.E.double()), materials.nu,
-                                              materials.density, *self._static(materials), grad=False)
+            mats = self.engine.material_table(*self._engine_materials(materials), grad=False)
             states, _ = self.engine.forward(box.to_sim(x0.double()).float().cpu(),
                                             box.vec_to_sim(v0.double()).float().cpu(), mats, step, keep_before_last=False)
             # On the particles' device whatever the simulator's (a CUDA rollout of CPU particles returns CPU
