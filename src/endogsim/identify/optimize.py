@@ -418,16 +418,15 @@ def coarse_and_refined(problem: SimScene, refined: SimScene, init_field: Materia
     another discretisation), all simulated side by side, the refined ones first (the longest start first; the
     first simulation of ``problem`` alone unless ``warmed``, ``problem`` simulated in this process already:
     Warp builds its kernels on a scene's first simulation)."""
-    built = [warmed]  # whether a simulation ran, so that the kernels are built (the closure below sets it)
-
     def evaluate(thetas: list[np.ndarray], refined_thetas: list[np.ndarray],
                  ) -> tuple[list[Evaluation], list[Evaluation]]:
+        nonlocal warmed
         tasks = [partial(evaluate_residuals, refined, init_field, vector.params(t), obs, camera, config)
                  for t in refined_thetas]
         tasks += [partial(evaluate_residuals, problem, init_field, vector.params(t), obs, camera, config)
                   for t in thetas]
-        first = [] if built[0] or not thetas else [tasks.pop(len(refined_thetas))()]
-        built[0] = True
+        first = [] if warmed or not thetas else [tasks.pop(len(refined_thetas))()]
+        warmed = True
         done = run_independent(tasks, min(problem.independent_simulations(), refined.independent_simulations()))
         n = len(refined_thetas)
         return first + done[n:], done[:n]

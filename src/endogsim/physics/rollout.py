@@ -296,17 +296,15 @@ class Simulator:
                                      used.density.numpy(), speed)
         return Timestep(substeps, dt)
 
-    def engine_inputs(self, materials: ObjectMaterials, v0: torch.Tensor | None = None) -> tuple:
+    def engine_inputs(self, materials: ObjectMaterials) -> tuple:
         """What a rollout of ``materials`` hands the engine: its substeps and their length (the CFL plan), the
         per-object float32 E, nu and density in sim units (the density mass-scaled), the model ids and the yield
         stress. Materials with equal inputs roll out to the same numbers, to the last bit, even where their
         float64 values differ (a Poisson's ratio sent through the optimiser's raw parameter and back differs from
         the prior it came from in the 17th digit, not in float32)."""
         with torch.no_grad():
-            if v0 is None:
-                p = self.particles
-                v0 = p.v if p.v is not None else torch.zeros_like(p.x)
-            step = self.timestep(materials, v0)
+            p = self.particles
+            step = self.timestep(materials, p.v if p.v is not None else torch.zeros_like(p.x))  # simulate's default
             E, nu, density, model, yield_stress = self._engine_materials(materials)
             return (step.substeps, step.dt, model,
                     *(t.detach().cpu().to(torch.float32) for t in (E, nu, density, yield_stress)))
