@@ -170,6 +170,23 @@ def test_every_suite_scene_builds_within_stability_limits(name):
     assert len(b.tools) == 1 and b.tools[0].matrices().shape == (4, 4, 4)
 
 
+def test_real_regime_scenes_are_identified_with_the_real_video_pipelines_mass_scaling():
+    """The real regime's identification simulates quasi-statically, with the mass scaling the pipeline gives a real
+    video's scene; the other regimes' do not; no ground truth ever scales its masses."""
+    from endogsim.pipeline.scene_from_recon import RealScenario
+    from endogsim.synth.generate import _scene_spec, ground_truth_problem
+    from endogsim.synth.suite import scene_spec
+
+    real_video = RealScenario().mass_scaling
+    assert real_video > 1
+    for name in suite_scene_names() + ["tiny", "tiny_lift"]:
+        spec = scene_spec(name)
+        assert spec["mass_scaling"] == (real_video if spec["regime"] == "real" else 1.0), name
+    b = build_procedural("lift_real", seed=0, frames=2, scale=0.25)
+    assert b.mass_scaling == real_video and _scene_spec(b, 0).scenario.mass_scaling == real_video
+    assert ground_truth_problem(b)[2].mass_scaling == 1.0
+
+
 def test_a_ground_truth_that_has_not_settled_is_refused():
     """Frame 0 of a video is tissue at rest: settling that stops short of the equilibrium would leave its
     rest moving in the clip as if a tool did it (on `tiny`, 2 frames at 400/s left 5.8% of a grid cell in the

@@ -220,6 +220,7 @@ def _scene_spec(b: BuiltScene, seed: int) -> SceneSpec:
         frame_dt=float(b.frame_dt), damping=float(b.damping), boundary_conditions=b.boundary_conditions,
         tools=list(b.tools), extrusion=b.extrusion, ground_truth=b.ground_truth, identification=b.identification,
         settle_frames=int(b.settle_frames), settle_damping=b.settle_damping, forces=list(b.forces),
+        mass_scaling=float(b.mass_scaling),
     )
     cam = CameraSpec(K=b.camera.K.double().tolist(), width=b.camera.width, height=b.camera.height,
                       viewmat=b.camera.viewmat.double().tolist())

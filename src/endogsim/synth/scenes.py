@@ -52,6 +52,9 @@ class BuiltScene:
         objects: ground-truth records. tools: capsule tools with per-frame transforms.
         box_lo [3], box_size (metres): the sim box. gravity [3] m/s^2. damping 1/s.
         settle_frames: frames of settling under gravity before frame 0 (the video starts at equilibrium).
+        mass_scaling: identification's quasi-static mass scaling (:class:`endogsim.physics.Scenario`; the ground
+            truth is never mass-scaled): the real regime's scenes are identified as the pipeline identifies real
+            video (:class:`endogsim.pipeline.scene_from_recon.RealScenario`), the others with 1.
         forces: scene-level force descriptions (e.g. the paper protocol's impulse), as in scene.json.
         ground_truth / identification: discretisations (the ground truth is finer: 2x the grid, half the
             particle spacing, 2x the substeps, so the benchmark does not reward matching one discretisation).
@@ -77,6 +80,7 @@ class BuiltScene:
     extrusion: dict[str, Any]
     settle_frames: int = 0
     settle_damping: float | None = None
+    mass_scaling: float = 1.0
     forces: list[dict[str, Any]] = field(default_factory=list)
     source: str = "procedural"
     extra: dict[str, Any] = field(default_factory=dict)
@@ -212,6 +216,6 @@ def build_procedural(name: str, seed: int = 0, frames: int | None = None, scale:
         gravity=np.asarray(spec["gravity"], float), damping=spec["damping"], ground_truth=gt, identification=ident,
         boundary_conditions=bcs, extrusion={"along": "viewing_rays", "thickness": {o["name"]: o["thickness"] for o in spec["objects"]}},
         settle_frames=int(spec["settle_frames"]), settle_damping=spec.get("settle_damping"),
-        forces=list(spec.get("forces", [])),
+        mass_scaling=float(spec["mass_scaling"]), forces=list(spec.get("forces", [])),
         extra={"description": spec["description"], "depth_ref": D, "regime": spec.get("regime", "")},
     )

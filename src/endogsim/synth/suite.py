@@ -13,7 +13,9 @@ __all__ = ["DEMO_SCENE", "GENERATOR_REVISION", "SMALL_SCENES", "MAX_FRAMES", "MA
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
-GENERATOR_REVISION = 11  # 11: a ground truth whose tissue parts (scene.coverage.PARTED_LIMIT) is refused, so
+GENERATOR_REVISION = 12  # 12: the real regime's scenes are identified with the real-video pipeline's quasi-static
+#                        mass scaling (scene.json's scenario.mass_scaling 4; the ground truth is unchanged; stop 74);
+#                        11: a ground truth whose tissue parts (scene.coverage.PARTED_LIMIT) is refused, so
 #                        the grasper scenes lift straight towards the lens, no longer drawn sideways (stop 72); 10: the
 #                        instrument's path moves with the seed's relief beneath its tip (every seed
 #                        presses as deep; seed 0's scenes are unchanged; stop 68); 9: a ground truth whose
