@@ -179,7 +179,7 @@ def test_real_regime_scenes_are_identified_with_the_real_video_pipelines_mass_sc
 
     real_video = RealScenario().mass_scaling
     assert real_video > 1
-    for name in suite_scene_names() + ["tiny", "tiny_lift"]:
+    for name in suite_scene_names():  # the small scenes too
         spec = scene_spec(name)
         assert spec["mass_scaling"] == (real_video if spec["regime"] == "real" else 1.0), name
     b = build_procedural("lift_real", seed=0, frames=2, scale=0.25)

@@ -303,8 +303,8 @@ class Simulator:
         float64 values differ (a Poisson's ratio sent through the optimiser's raw parameter and back differs from
         the prior it came from in the 17th digit, not in float32)."""
         with torch.no_grad():
-            p = self.particles
-            step = self.timestep(materials, p.v if p.v is not None else torch.zeros_like(p.x))  # simulate's default
+            # simulate's default initial velocity, p.v or zeros: zeros plan as no velocity at all.
+            step = self.timestep(materials, self.particles.v)
             E, nu, density, model, yield_stress = self._engine_materials(materials)
             return (step.substeps, step.dt, model,
                     *(t.detach().cpu().to(torch.float32) for t in (E, nu, density, yield_stress)))
