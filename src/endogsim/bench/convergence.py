@@ -49,15 +49,17 @@ def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
 
 
 def _refined(b, factor: int, parts: tuple[str, ...] = REFINE_PARTS):
-    """Identification's discretisation of built scene ``b`` refined ``factor`` times (1: itself) in ``parts``
-    (:func:`endogsim.scene.discretisation.refine`)."""
-    from endogsim.scene.discretisation import refine
+    """Identification's discretisation of built scene ``b`` at its true materials (the CFL rule's substeps:
+    :func:`endogsim.scene.discretisation.at_materials`) refined ``factor`` times (1: itself) in ``parts``
+    (:func:`endogsim.scene.discretisation.refine`): factor 2 is the ground truth's discretisation."""
+    from endogsim.scene.discretisation import at_materials, refine
     from endogsim.scene.motion import tool_speed
 
+    speed = tool_speed(b.tools, b.frame_dt)
+    planned = at_materials(b.identification, b.objects, b.box_size, b.frame_dt, speed)
     if factor == 1:
-        return b.identification
-    return refine(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor,
-                  parts=parts)
+        return planned
+    return refine(planned, b.objects, b.box_size, b.frame_dt, speed, factor, parts=parts)
 
 
 def _rms_change(coarse: torch.Tensor, fine: torch.Tensor) -> float:
@@ -79,7 +81,7 @@ def convergence_case(name: str, frames: int | None = None, factor: int = 2,
     b = build_procedural(name, seed=0, frames=frames)
     fine = _refined(b, factor, refine)
     t0 = time.perf_counter()
-    coarse, n_coarse, sub_coarse = motion_of(b, b.identification)
+    coarse, n_coarse, sub_coarse = motion_of(b, _refined(b, 1))
     t1 = time.perf_counter()
     refined, n_fine, sub_fine = motion_of(b, fine)
     t2 = time.perf_counter()

@@ -68,4 +68,4 @@ def register(app: typer.Typer) -> None:
         sc = load_scene_spec(path).scenario
         gt, idn = sc.ground_truth, sc.identification
         console.print(f"wrote {path} (ground truth: grid {gt.grid}^3, {gt.substeps} substeps of {gt.dt:.2g} s; "
-                      f"identification: grid {idn.grid}^3, {idn.substeps} substeps of {idn.dt:.2g} s)")
+                      f"identification: grid {idn.grid}^3, substeps by the CFL rule at run time, >= {idn.substeps})")

@@ -22,7 +22,8 @@ from endogsim.physics.config import MPMConfig
 from endogsim.physics.stability import p_wave_speed, plan_substeps
 from endogsim.scene.schema import SceneObject, SimSettings
 
-__all__ = ["CELLS_ACROSS_THICKNESS", "MAX_GRID", "REFINE_PARTS", "plan_discretisation", "refine", "sim_settings"]
+__all__ = ["CELLS_ACROSS_THICKNESS", "MAX_GRID", "REFINE_PARTS", "at_materials", "plan_discretisation", "refine",
+           "sim_settings"]
 
 #: Grid cells across the thinnest tissue's thickness (measured by ``endogsim bench convergence``).
 CELLS_ACROSS_THICKNESS = 3
@@ -74,6 +75,16 @@ def plan_discretisation(objects: Sequence[SceneObject], box_size: float, thickne
                         f"the {box_size * 1e3:.0f} mm sim box, above {MAX_GRID}^3: use a smaller box or fewer cells")
     return sim_settings(objects, box_size, grid, frame_dt, min_substeps, max_speed, cfl_number,
                         particle_spacing=box_size / grid / 2)
+
+
+def at_materials(settings: SimSettings, objects: Sequence[SceneObject], box_size: float, frame_dt: float,
+                 max_speed: float = 0.0, cfl_number: float = 0.5) -> SimSettings:
+    """``settings`` with the substeps the CFL rule takes for ``objects``' known materials (never fewer than
+    ``settings.substeps``): what a simulation of those materials at ``settings`` runs at (the simulator plans
+    the same way at run time). A ground truth is refined from its materials' plan, not from identification's
+    settings, which are planned without them (:func:`endogsim.synth.scenes.scene_discretisations`)."""
+    return sim_settings(objects, box_size, settings.grid, frame_dt, settings.substeps, max_speed, cfl_number,
+                        particle_spacing=settings.particle_spacing)
 
 
 def refine(settings: SimSettings, objects: Sequence[SceneObject], box_size: float, frame_dt: float,

@@ -154,12 +154,13 @@ def read_observations(folder: Path, spec: SceneSpec, frames: int) -> tuple[np.nd
 def identification_settings(spec: SceneSpec, factor: float = 1.0) -> SimSettings:
     """The discretisation identification simulates ``spec`` at: the scenario's identification settings (with
     their particle spacing spelled out), refined by ``factor`` (:func:`endogsim.scene.discretisation.refine`;
-    1: as they are)."""
+    1: as they are). Refined without the objects' materials: a benchmark scene's are the ground truth, which
+    identification never reads; the simulator plans the substeps for the materials it simulates."""
     sc = spec.scenario
     ident = replace(sc.identification, particle_spacing=sc.spacing(sc.identification))
     if factor == 1:
         return ident
-    return refine(ident, spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
+    return refine(ident, (), float(sc.box_size), float(sc.frame_dt), factor=factor)
 
 
 def load_sim_scene(folder: str | Path, frames: int | None = None, device: str = "cpu",
@@ -271,5 +272,6 @@ def rediscretised(scene: SimScene, factor: float) -> SimScene:
     (:func:`endogsim.identify.uncertainty.discretisation_error`, ``factor`` < 1) and its refined correction
     (:mod:`endogsim.identify.refined_correction`, ``factor`` > 1) compare the two."""
     sc = scene.spec.scenario
-    settings = refine(scene.settings, scene.spec.objects, float(sc.box_size), float(sc.frame_dt), factor=factor)
+    # refined without the materials, as in identification_settings
+    settings = refine(scene.settings, (), float(sc.box_size), float(sc.frame_dt), factor=factor)
     return load_sim_scene(scene.folder, scene.num_frames, scene.mpm.device, settings=settings)

@@ -30,7 +30,7 @@ import numpy as np
 from endogsim.errors import DataError
 from endogsim.gaussians.camera import Camera
 from endogsim.gaussians.model import Gaussians
-from endogsim.scene.discretisation import plan_discretisation, refine
+from endogsim.scene.discretisation import at_materials, plan_discretisation, refine
 from endogsim.scene.motion import tool_capsule, tool_offsets, tool_speed
 from endogsim.scene.schema import SceneObject, SimSettings, ToolCapsule
 from endogsim.synth import procedural as proc
@@ -145,13 +145,19 @@ def scene_discretisations(spec: dict[str, Any], objects: list[SceneObject], box_
                           tools: list[ToolCapsule], thickness: float) -> tuple[SimSettings, SimSettings]:
     """(ground truth, identification) discretisations of a scene from the suite's numerics keys:
     identification from the thinnest tissue (``cells_across_thickness``, :func:`plan_discretisation`), the
-    ground truth ``ground_truth_refine`` times finer (:func:`refine`)."""
+    ground truth ``ground_truth_refine`` times finer (:func:`refine`) than identification at the true materials.
+
+    Identification's settings are planned without the materials, as a real video's are: their substeps are
+    only the floor (``min_substeps``), and the simulator takes what the CFL rule asks for the materials it
+    simulates at run time. Planned at the true materials, the floor would hand identification the truth's
+    substep count wherever it tries a softer or more compressible material."""
     frame_dt = float(spec["frame_dt"])
     speed = tool_speed(tools, frame_dt)
-    ident = plan_discretisation(objects, box_size, thickness, frame_dt, speed,
+    ident = plan_discretisation((), box_size, thickness, frame_dt, speed,
                                 cells_across=int(spec["cells_across_thickness"]),
                                 min_substeps=int(spec.get("min_substeps", 1)))
-    gt = refine(ident, objects, box_size, frame_dt, speed, factor=int(spec["ground_truth_refine"]))
+    gt = refine(at_materials(ident, objects, box_size, frame_dt, speed), objects, box_size, frame_dt, speed,
+                factor=int(spec["ground_truth_refine"]))
     return gt, ident
 
 

@@ -13,7 +13,9 @@ __all__ = ["DEMO_SCENE", "GENERATOR_REVISION", "SMALL_SCENES", "MAX_FRAMES", "MA
 
 # Bump when the ground truth a seed produces changes (simulator physics, suite numerics): cached scenes
 # with another revision are synthesized again (endogsim.bench.identify.ensure_scene).
-GENERATOR_REVISION = 12  # 12: the real regime's scenes are identified with the real-video pipeline's quasi-static
+GENERATOR_REVISION = 13  # 13: identification's discretisation is planned without the true materials (its substeps a
+#                        floor, as a real video's; the ground truth is unchanged; stop 75);
+#                        12: the real regime's scenes are identified with the real-video pipeline's quasi-static
 #                        mass scaling (scene.json's scenario.mass_scaling 4; the ground truth is unchanged; stop 74);
 #                        11: a ground truth whose tissue parts (scene.coverage.PARTED_LIMIT) is refused, so
 #                        the grasper scenes lift straight towards the lens, no longer drawn sideways (stop 72); 10: the
