@@ -153,6 +153,9 @@ def test_materials_are_simulated_at_the_discretisation_they_were_identified_at(t
     assert fine["discretisation"]["refine"] == 1.5
     coarse = simulate_interaction(tmp_path / "fine", poke, None, tmp_path / "sim1", write_ply_sequence=False, refine=1)
     assert coarse["discretisation"]["refine"] == 1.0 and coarse["particles"] < fine["particles"]
+    # the substeps the materials simulated at (the CFL rule's count), not only the scene's floor
+    for run in (fine, coarse):
+        assert run["discretisation"]["substeps_at_materials"] == run["substeps"] >= run["discretisation"]["substeps"]
 
 
 def test_the_refined_correction_lowers_the_refined_loss_and_its_materials_belong_to_the_refined_grid(problem, tmp_path,

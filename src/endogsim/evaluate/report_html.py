@@ -183,11 +183,15 @@ def settling_text(settle: dict) -> str:
 
 
 def simulated_at_text(d: dict) -> str:
-    """'grid 49 (2.24 mm cells), 24,505 particles, at least 8 substeps a frame (1x the scene's identification
-    discretisation)' from metrics.json's ``discretisation`` record
-    (:func:`endogsim.identify.report.discretisation_record`)."""
-    return (f"grid {d['grid']} ({d['cell_m'] * 1e3:.2f} mm cells), {d['particles']:,} particles, at least "
-            f"{d['substeps']} substeps a frame ({d['refine']:g}x the scene's identification discretisation)")
+    """'grid 49 (2.24 mm cells), 24,505 particles, 8 substeps a frame at these materials (1x the scene's
+    identification discretisation)' from metrics.json's ``discretisation`` record
+    (:func:`endogsim.identify.report.discretisation_record`; 'at least N substeps a frame' where it has no
+    materials' count)."""
+    at = d.get("substeps_at_materials")
+    substeps = f"at least {d['substeps']}" if at is None else f"{at}"
+    return (f"grid {d['grid']} ({d['cell_m'] * 1e3:.2f} mm cells), {d['particles']:,} particles, {substeps} "
+            f"substeps a frame{'' if at is None else ' at these materials'} ({d['refine']:g}x the scene's "
+            "identification discretisation)")
 
 
 def correction_text(d: dict) -> str:

@@ -124,13 +124,18 @@ def flow_error_map(problem: SimScene, flow: np.ndarray, reference: np.ndarray | 
     return in_field_of_view(problem, torch.from_numpy(err)[..., None])[..., 0].numpy()
 
 
-def discretisation_record(problem: SimScene, refine: float) -> dict:
+def discretisation_record(problem: SimScene, refine: float, field: MaterialField | None = None) -> dict:
     """metrics.json's ``discretisation``: what identification simulated at. {"refine" (the factor on the
     scene's identification discretisation), "grid" (cells per edge of the sim box), "cell_m" (metres),
-    "particle_spacing_m", "particles", "substeps" (per frame, the least; stiffer trial materials take more)}."""
+    "particle_spacing_m", "particles", "substeps" (per frame, the least: each material simulates at what the CFL
+    rule asks for it), "substeps_at_materials" (per frame, what ``field`` simulates at; None without one)}."""
     s = problem.settings
+    at = None
+    if field is not None:
+        at = problem.simulator().timestep(field.simulator_materials(), problem.particles.v).substeps
     return {"refine": float(refine), "grid": int(s.grid), "cell_m": problem.scenario.box.size / s.grid,
-            "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps)}
+            "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps),
+            "substeps_at_materials": at}
 
 
 def correction_record(result: IdentifyResult, field_refine: float) -> dict | None:
@@ -141,7 +146,7 @@ def correction_record(result: IdentifyResult, field_refine: float) -> dict | Non
     c = result.correction
     if c is None:
         return None
-    at = None if result.refined is None else discretisation_record(result.refined, field_refine)
+    at = None if result.refined is None else discretisation_record(result.refined, field_refine, result.field)
     return {**c.to_json(), "applied": result.refined is not None, "discretisation": at}
 
 
@@ -279,7 +284,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         "stage_seconds": stage_seconds,
         "epe": ev.epe, "epe_reference": ev.epe_reference, "psnr": ev.psnr, "ssim": ev.ssim,
         "coverage": ev.coverage.to_json(), "settling": settling_record(problem, ev.settling_left),
-        "discretisation": discretisation_record(problem, config.refine),
+        "discretisation": discretisation_record(problem, config.refine, result.field),
         "force_scales": force_scale_record(problem),
         "refined_correction": correction_record(result, refine),
         "materials": {r.name: {"object_id": r.object_id, "E": r.E, "nu": r.nu, "density": r.density, "rigid": r.rigid,

@@ -397,7 +397,7 @@ def _simulate_and_write(problem, inter: Interaction, fld: MaterialField, info: d
                                "rigid": r.rigid, "source": r.source} for r in fld.records},
         "frames": T, "frame_dt": problem.mpm.frame_dt, "substeps": res.substeps, "dt": res.dt,
         "particles": len(problem.particles), "gaussians": len(problem.gaussians),
-        "discretisation": discretisation_record(problem, refine),
+        "discretisation": discretisation_record(problem, refine, fld),
         "displacement": displacement, "grasp_bites": bites,
         "mean_flow_px": float(r.flow.norm(dim=-1).mean()) if r.flow.numel() else 0.0,
         "seconds": {"simulate": t_sim, "render_and_write": t_render},
