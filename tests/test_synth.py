@@ -245,11 +245,7 @@ def test_a_ground_truth_whose_grasper_tears_its_bite_out_is_refused(monkeypatch)
     from endogsim.synth.suite import scene_spec
 
     def at_identification(b):  # identification's grid and particles, the true materials' substeps
-        from endogsim.scene.discretisation import at_materials
-        from endogsim.scene.motion import tool_speed
-
-        planned = at_materials(b.identification, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt))
-        return replace(b, ground_truth=planned)
+        return replace(b, ground_truth=b.identification_at_truth())
 
     simulate_built(at_identification(build_procedural("stomach", seed=0)))
 

@@ -49,17 +49,16 @@ def motion_of(b, settings) -> tuple[torch.Tensor, int, int]:
 
 
 def _refined(b, factor: int, parts: tuple[str, ...] = REFINE_PARTS):
-    """Identification's discretisation of built scene ``b`` at its true materials (the CFL rule's substeps:
-    :func:`endogsim.scene.discretisation.at_materials`) refined ``factor`` times (1: itself) in ``parts``
-    (:func:`endogsim.scene.discretisation.refine`): factor 2 is the ground truth's discretisation."""
-    from endogsim.scene.discretisation import at_materials, refine
+    """Identification's discretisation of built scene ``b`` at its true materials
+    (:meth:`~endogsim.synth.scenes.BuiltScene.identification_at_truth`) refined ``factor`` times (1: itself) in
+    ``parts`` (:func:`endogsim.scene.discretisation.refine`): factor 2 is the ground truth's discretisation."""
+    from endogsim.scene.discretisation import refine
     from endogsim.scene.motion import tool_speed
 
-    speed = tool_speed(b.tools, b.frame_dt)
-    planned = at_materials(b.identification, b.objects, b.box_size, b.frame_dt, speed)
+    planned = b.identification_at_truth()
     if factor == 1:
         return planned
-    return refine(planned, b.objects, b.box_size, b.frame_dt, speed, factor, parts=parts)
+    return refine(planned, b.objects, b.box_size, b.frame_dt, tool_speed(b.tools, b.frame_dt), factor, parts=parts)
 
 
 def _rms_change(coarse: torch.Tensor, fine: torch.Tensor) -> float:

@@ -85,6 +85,13 @@ class BuiltScene:
     source: str = "procedural"
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def identification_at_truth(self) -> SimSettings:
+        """Identification's discretisation with the substeps the CFL rule takes for the true materials
+        (:func:`~endogsim.scene.discretisation.at_materials`): what its grid and particles run the ground-truth
+        problem at (``bench convergence``'s 1x; refined 2x, it is the ground truth's discretisation)."""
+        return at_materials(self.identification, self.objects, self.box_size, self.frame_dt,
+                            tool_speed(self.tools, self.frame_dt))
+
 
 def _outline(obj: dict[str, Any]):
     """(mask_fn, edge_distance_fn, height_fn) of an organ in its local (u, v) coordinates (metres)."""
