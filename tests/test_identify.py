@@ -263,24 +263,48 @@ def test_the_iterations_simulations_score_a_field_as_a_new_simulation_would(run3
     from endogsim.identify.report import evaluate_field
 
     res, _ = run3
+    scene = res.scene  # planned at the initial materials, as the iterations simulated
     assert res.simulations.find(res.field.simulator_materials()) is not None
     for fld in (res.field, res.init_field):
-        kept, fresh = evaluate_field(problem, fld, known=res.simulations), evaluate_field(problem, fld)
+        kept, fresh = evaluate_field(scene, fld, known=res.simulations), evaluate_field(scene, fld)
         assert (kept.epe, kept.psnr, kept.ssim, kept.settling_left) == (fresh.epe, fresh.psnr, fresh.ssim,
                                                                          fresh.settling_left)
         assert np.array_equal(kept.rgb, fresh.rgb) and kept.coverage.to_json() == fresh.coverage.to_json()
     other = field_from_truth(problem, 3.0)
     assert res.simulations.find(other.simulator_materials()) is None
-    assert res.simulations.find(other.simulator_materials(), problem.simulator()) is None
+    assert res.simulations.find(other.simulator_materials(), scene.simulator()) is None
     # nu one float64 step away (its round trip through the raw parameter can do that) gives the simulator the
     # same float32 inputs: found with the scene's simulator, scored as a new simulation scores it.
     nudged = MaterialField([r if r.rigid else r.model_copy(update={"nu": math.nextafter(r.nu, 1.0)})
                             for r in res.field.records])
     assert res.simulations.find(nudged.simulator_materials()) is None
-    assert res.simulations.find(nudged.simulator_materials(), problem.simulator()) is not None
-    kept, fresh = evaluate_field(problem, nudged, known=res.simulations), evaluate_field(problem, nudged)
+    assert res.simulations.find(nudged.simulator_materials(), scene.simulator()) is not None
+    kept, fresh = evaluate_field(scene, nudged, known=res.simulations), evaluate_field(scene, nudged)
     assert (kept.epe, kept.psnr, kept.ssim) == (fresh.epe, fresh.psnr, fresh.ssim)
     assert np.array_equal(kept.rgb, fresh.rgb)
+
+
+def test_identification_plans_its_substeps_once_at_the_initial_materials(run3, problem):
+    """Every trial simulates with the time step of the initial materials (2x the truth here) unless it needs a
+    finer one: a softer trial keeps the initial count (its own CFL count is lower, and crossing it would make
+    the loss jump by a substep's time-discretisation error), a stiffer one takes what the CFL rule asks."""
+    from endogsim.identify.optimize import planned_for
+
+    res, _ = run3
+    v = problem.particles.v
+
+    def count(scene, factor):
+        return scene.simulator().timestep(field_from_truth(problem, factor).simulator_materials(), v).substeps
+
+    planned = res.scene.mpm.substeps_per_frame
+    assert planned == count(problem, 2.0) > problem.mpm.substeps_per_frame  # the scene's floor (1) is below it
+    assert count(res.scene, 1.0) == planned > count(problem, 1.0)
+    assert count(res.scene, 4.0) == count(problem, 4.0) > planned
+    kept = [res.simulations.find(f.simulator_materials(), res.scene.simulator()) for f in (res.field, res.init_field)]
+    assert [r.substeps for r in kept] == [planned, planned]
+    # Planning twice is planning once; a caller plans as identify does.
+    assert res.scene.planned_at(field_from_truth(problem, 2.0).simulator_materials()) is res.scene
+    assert planned_for(problem, res.init_field, fast_config()).mpm.substeps_per_frame == planned
 
 
 def test_loss_decreases_and_E_moves_towards_the_truth(run3):

@@ -194,7 +194,7 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         rec["wall_seconds"] = time.perf_counter() - t_run
         rec["stage_seconds"] = m.get("stage_seconds")
         rec["materials"] = object_results(m, truth)
-        rec["fid"] = _run_fid(problem, work / key, net) if net is not None else None
+        rec["fid"] = _run_fid(problem, work / key, net, cfg) if net is not None else None
         done[key] = rec
     result = {"scene": name, "folder": str(folder), "runs": done, "wall_seconds": time.perf_counter() - t0}
     write_json_atomic(record_file, {"signature": signature, "result": result})
@@ -270,13 +270,16 @@ def interval_summary(objects: list[dict]) -> dict:
     }
 
 
-def _run_fid(problem, run_dir: Path, net) -> float:
-    """FID between the observed frames and the frames simulated with the run's identified materials."""
+def _run_fid(problem, run_dir: Path, net, config) -> float:
+    """FID between the observed frames and the frames simulated with the run's identified materials (on the
+    scene planned at its initial materials, as the run simulated them)."""
     from endogsim.evaluate.fid import fid
+    from endogsim.identify.optimize import planned_for
     from endogsim.identify.report import evaluate_field
     from endogsim.materials.field import MaterialField
 
-    ev = evaluate_field(problem, MaterialField.load(run_dir / "materials_identified.json"))
+    planned = planned_for(problem, MaterialField.load(run_dir / "materials_init.json"), config)
+    ev = evaluate_field(planned, MaterialField.load(run_dir / "materials_identified.json"))
     return fid(problem.frames, ev.rgb, net=net)
 
 

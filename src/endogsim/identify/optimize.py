@@ -74,7 +74,7 @@ from endogsim.warp_runtime import run_independent
 __all__ = ["IdentifyResult", "identify", "stable_log10_E_max", "check_stable", "CHECKPOINT_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_CKPT_VERSION = 2
+_CKPT_VERSION = 3  # 3: substeps planned once, at the initial materials (planned_for)
 
 
 class SharedScaleAdam(torch.optim.Optimizer):
@@ -185,6 +185,9 @@ class IdentifyResult:
             identification's own discretisation); ``refined_simulations`` holds its simulation there.
         stage_seconds: wall time (s) of this call's stages after the iterations: "intervals" (the evaluation
             of the identified field included where it ran beside their trials) and "refined_correction".
+        scene: the scene as identification simulated it, its substeps planned at the initial materials
+            (:func:`planned_for`): ``simulations`` are its, and fields are evaluated on it to be seen as
+            identification saw them.
     """
 
     field: MaterialField
@@ -203,6 +206,7 @@ class IdentifyResult:
     refined: SimScene | None = None
     refined_simulations: Simulations = field(default_factory=Simulations)
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    scene: SimScene | None = None
 
 
 def stable_log10_E_max(problem: SimScene, nu: torch.Tensor, density: torch.Tensor, config: IdentifyConfig) -> torch.Tensor:
@@ -260,6 +264,16 @@ def project_into_search_box(params: MaterialParams, problem: SimScene, fld: Mate
     with torch.no_grad():
         lo, hi = log10_E_box(problem, fld, params, config)
         params.log10_E.copy_(torch.maximum(torch.minimum(params.log10_E, hi), lo))
+
+
+def planned_for(problem: SimScene, init_field: MaterialField, config: IdentifyConfig) -> SimScene:
+    """``problem`` with its substeps planned once, at the materials identification starts from (``init_field``
+    moved into the search box, as :func:`identify` starts): see :meth:`SimScene.planned_at`. Every
+    discretisation identification simulates (its own, the coarser one of the intervals, the refined one of the
+    correction) is planned this way, each at its own CFL count for the same starting materials."""
+    start = init_field.to_params(global_material=config.global_material, nu_bounds=config.nu_bounds)
+    project_into_search_box(start, problem, init_field, config)
+    return problem.planned_at(init_field.simulator_materials(start))
 
 
 def _values(params: MaterialParams) -> tuple[dict[str, float], dict[str, float]]:
@@ -457,7 +471,8 @@ def identify(
     """Identify E and nu of the deformable objects of ``problem`` from its observed video.
 
     Args:
-        problem: the scene (see :func:`endogsim.identify.load_sim_scene`).
+        problem: the scene (see :func:`endogsim.identify.load_sim_scene`). Identification simulates it with
+            its substeps planned once at the initial materials (:func:`planned_for`; the result's ``scene``).
         init_field: starting materials (every object id of the scene needs a record); rigid objects stay as given.
         config: options (default :class:`IdentifyConfig`).
         run_dir: folder for the flow cache and the checkpoint (None: nothing written, no resume).
@@ -485,6 +500,7 @@ def identify(
         raise DataError(f"the initial material field has no record for object(s) {missing} of {problem.folder}")
     if strict:
         check_stable(problem, init_field, cfg)
+    problem = planned_for(problem, init_field, cfg)  # a caller's run_identify planned it already
     run_dir = None if run_dir is None else Path(run_dir)
     if run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -655,7 +671,7 @@ def identify(
             coarse, coarse_evaluate = None, None
             if cfg.coarse_factor is not None:
                 try:
-                    coarse = rediscretised(problem, cfg.coarse_factor)
+                    coarse = planned_for(rediscretised(problem, cfg.coarse_factor), init_field, cfg)
                 except EndoGSimError as e:  # e.g. a tissue thinner than a coarse particle: intervals without it
                     notes.append(f"the discretisation error was not measured: the scene at {cfg.coarse_factor:g}x "
                                  f"its grid could not be built ({e})")
@@ -699,7 +715,7 @@ def identify(
                           iterations=len(history), seconds=seconds, stopped=stopped, notes=notes, intervals=intervals,
                           evaluation=evaluation if refined is None else None, simulations=simulations,
                           correction=correction, refined=refined, refined_simulations=refined_simulations,
-                          stage_seconds=stage_seconds)
+                          stage_seconds=stage_seconds, scene=problem)
 
 
 def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _ParameterVector,
@@ -728,7 +744,7 @@ def corrected_to_refined(problem: SimScene, init_field: MaterialField, vector: _
     if not free.any():
         return ident, intervals, None, None, Simulations()
     try:
-        refined = rediscretised(problem, config.refined_correction)
+        refined = planned_for(rediscretised(problem, config.refined_correction), init_field, config)
     except EndoGSimError as e:  # e.g. too many particles for this machine: the field stays as identified
         notes.append(f"no refined correction: the scene at {config.refined_correction:g}x its grid could not be "
                      f"built ({e})")

@@ -127,14 +127,16 @@ def flow_error_map(problem: SimScene, flow: np.ndarray, reference: np.ndarray | 
 def discretisation_record(problem: SimScene, refine: float, field: MaterialField | None = None) -> dict:
     """metrics.json's ``discretisation``: what identification simulated at. {"refine" (the factor on the
     scene's identification discretisation), "grid" (cells per edge of the sim box), "cell_m" (metres),
-    "particle_spacing_m", "particles", "substeps" (per frame, the least: each material simulates at what the CFL
-    rule asks for it), "substeps_at_materials" (per frame, what ``field`` simulates at; None without one)}."""
+    "particle_spacing_m", "particles", "substeps" (per frame, the least: identification's count planned at its
+    initial materials (:func:`~endogsim.identify.optimize.planned_for`), else the scene's floor; a material that
+    needs more by the CFL rule simulates at more), "substeps_at_materials" (per frame, what ``field`` simulates at; None without one)}."""
     s = problem.settings
     at = None
     if field is not None:
         at = problem.simulator().timestep(field.simulator_materials(), problem.particles.v).substeps
     return {"refine": float(refine), "grid": int(s.grid), "cell_m": problem.scenario.box.size / s.grid,
-            "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles), "substeps": int(s.substeps),
+            "particle_spacing_m": s.particle_spacing, "particles": len(problem.particles),
+            "substeps": int(problem.mpm.substeps_per_frame),
             "substeps_at_materials": at}
 
 

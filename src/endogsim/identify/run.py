@@ -9,7 +9,7 @@ import numpy as np
 
 from endogsim.errors import DataError, MaterialError
 from endogsim.identify.config import IdentifyConfig
-from endogsim.identify.optimize import CHECKPOINT_NAME, identify
+from endogsim.identify.optimize import CHECKPOINT_NAME, identify, planned_for
 from endogsim.identify.report import evaluate_field, reference_observed_flow, write_outputs
 from endogsim.io.runfolder import check_npz, load_torch_file, run_folder
 from endogsim.materials.field import MaterialField
@@ -93,6 +93,7 @@ def run_identify(
                                 f"discretisation refined {cfg.refine:g}x that the configuration asks for")
         fld, strict = initial_field(pb, init)
         check_field_objects(pb, fld, init)
+        pb = planned_for(pb, fld, cfg)  # as identify simulates it: its fields are evaluated and shown so
         # The identified field is evaluated while the intervals' last trials run, where they run side by side.
         result = identify(pb, fld, cfg, run_dir=out, resume=resume, progress=progress, strict=strict,
                           evaluate=lambda f, known: evaluate_field(pb, f, reference_observed_flow(pb, cfg, out), known),

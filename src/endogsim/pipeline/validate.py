@@ -243,6 +243,7 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
     from endogsim.evaluate.report_html import write_report
     from endogsim.identify import run_identify
     from endogsim.identify.loss import make_observations, observed_flow
+    from endogsim.identify.optimize import planned_for
     from endogsim.identify.report import comparison_frames, flow_error_map
     from endogsim.io.runfolder import run_folder
     from endogsim.materials.field import MaterialField
@@ -282,6 +283,8 @@ def run_validate(data: str | Path, out: str | Path, config: ValidateConfig | Non
         refine = float(calibrated.meta.get("refine", ident_cfg.refine))
         if refine != ident_cfg.refine:  # corrected to a refined discretisation: both predictions are made there
             scene = load_sim_scene(out / "scene", device=ident_cfg.device, refine=refine)
+        # Planned at the prior as the calibration was: both predictions at the time step it simulated with.
+        scene = planned_for(scene, prior, ident_cfg)
 
         log("predicting the held-out frames")
         cam = scene.camera.scaled(cfg.eval_scale)

@@ -34,6 +34,7 @@ from endogsim.io.scene import ObjectLabel
 from endogsim.physics import (
     GaussianBinding,
     MPMConfig,
+    ObjectMaterials,
     Particles,
     Scenario,
     SimBox,
@@ -112,6 +113,20 @@ class SimScene:
         if self._simulator is None:
             self._simulator = Simulator(self.particles, self.scenario, self.mpm, self.num_frames)
         return self._simulator
+
+    def planned_at(self, materials: ObjectMaterials) -> SimScene:
+        """This scene with its substeps per frame planned once, at ``materials``: no rollout of the returned
+        scene takes fewer substeps than the CFL rule asks for ``materials`` (stiffer materials still take more).
+
+        Identification plans at its initial materials (:func:`endogsim.identify.optimize.planned_for`): every
+        trial then simulates with the same time step unless it needs a finer one, so the loss does not jump by a
+        substep's time-discretisation error where a trial's CFL count would cross an integer; those jumps are as
+        large as the loss rises that decide whether a parameter is identifiable. Returns ``self`` when its floor
+        is already at least that count (planning twice is planning once)."""
+        count = self.simulator().timestep(materials, self.particles.v).substeps
+        if count <= self.mpm.substeps_per_frame:
+            return self
+        return replace(self, mpm=replace(self.mpm, substeps_per_frame=count))
 
     def independent_simulations(self) -> int:
         """How many simulations of this scene to run at a time (e.g. an interval's trials): one per torch
