@@ -129,7 +129,8 @@ def discretisation_record(problem: SimScene, refine: float, field: MaterialField
     scene's identification discretisation), "grid" (cells per edge of the sim box), "cell_m" (metres),
     "particle_spacing_m", "particles", "substeps" (per frame, the least: identification's count planned at its
     initial materials (:func:`~endogsim.identify.optimize.planned_for`), else the scene's floor; a material that
-    needs more by the CFL rule simulates at more), "substeps_at_materials" (per frame, what ``field`` simulates at; None without one)}."""
+    needs more by the CFL rule simulates at more), "substeps_at_materials" (per frame, what ``field`` simulates at;
+    None without one)}."""
     s = problem.settings
     at = None
     if field is not None:
