@@ -166,7 +166,7 @@ def test_the_refined_correction_lowers_the_refined_loss_and_its_materials_belong
     5000 Pa), so its gains lie within the frames' noise and the correction would take no step: here any gain
     counts (that rule: tests/test_refined_correction.py)."""
     import endogsim.identify.refined_correction as rc
-    from endogsim.identify.optimize import evaluate_loss, prepare_observations
+    from endogsim.identify.optimize import evaluate_loss, planned_for, prepare_observations
 
     plain = identify(problem, field_from_truth(problem, 3.0), fast_config(iters=1))
     cfg = fast_config(iters=1, refined_correction=1.5)
@@ -178,8 +178,9 @@ def test_the_refined_correction_lowers_the_refined_loss_and_its_materials_belong
     assert c.before == pytest.approx([math.log10(plain.field[1].E), plain.field[1].nu], abs=1e-9)
     assert all(b < a for a, b in zip(c.refined_loss, c.refined_loss[1:])) and len(c.refined_loss) > 1
     assert res.field[1].E == pytest.approx(10 ** c.after[0]) and res.field[1].nu == pytest.approx(c.after[1])
-    fine = rediscretised(problem, 1.5)
-    assert res.refined.settings.grid == fine.settings.grid
+    fine = planned_for(rediscretised(problem, 1.5), res.init_field, cfg)  # the refined level, planned as identify's
+    assert (res.refined.settings.grid, res.refined.mpm.substeps_per_frame) == (fine.settings.grid,
+                                                                             fine.mpm.substeps_per_frame)
     obs, cam = prepare_observations(problem, cfg, tmp_path / "run")
     at = {name: evaluate_loss(fine, res.init_field, fld.to_params(nu_bounds=cfg.nu_bounds), obs, cam, cfg,
                               grad=False)[0].parts["total"]
