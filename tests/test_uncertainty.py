@@ -408,6 +408,14 @@ def test_a_tool_that_never_touches_the_tissue_determines_nothing(tmp_path):
         assert tissue[what]["interval"] == pytest.approx(tissue[what]["search_box"])
         assert tissue[what]["discretisation"] is None and tissue[what]["statistical_interval"] is None
     assert m["materials"]["tissue"]["source"] == NOT_IDENTIFIABLE
+    # summary.txt prints the tissue's intervals under the tissue's own line, not under the last object's
+    lines = (tmp_path / "run" / "summary.txt").read_text().splitlines()
+    objects = [i for i, line in enumerate(lines) if line.startswith("  ") and not line.startswith("   ")]
+    tissue_at = next(i for i in objects if lines[i].startswith("  tissue "))
+    after = [i for i in objects if i > tissue_at]
+    own = lines[tissue_at + 1:after[0] if after else None]
+    assert [line.split()[0] for line in own if "90% interval" in line] == ["E", "nu"]
+    assert sum("90% interval" in line for line in lines) == 2  # the rigid tool has none
     init = json.loads((tmp_path / "run" / "materials_init.json").read_text())
     rec = next(r for r in init["objects"] if r["name"] == "tissue")
     assert m["materials"]["tissue"]["E"] == pytest.approx(rec["E"]) and m["materials"]["tissue"]["nu"] == rec["nu"]

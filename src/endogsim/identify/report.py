@@ -206,6 +206,21 @@ def interval_table(intervals: list[ParameterInterval]) -> dict:
     return out
 
 
+def interval_lines(intervals: list[ParameterInterval]) -> list[str]:
+    """summary.txt's lines for one object's 90% intervals, printed under that object's own line (with the noise
+    and discretisation parts where the discretisation was measured)."""
+    lines = []
+    for iv in intervals:
+        unit = " Pa" if iv.parameter == "E" else ""
+        lines.append(f"    {iv.parameter} 90% interval [{iv.interval[0]:.4g}, {iv.interval[1]:.4g}]{unit}: "
+                     f"{'identifiable' if iv.identifiable else 'NOT identifiable'} ({iv.reason})")
+        if iv.discretisation is not None:
+            lo, hi = iv.statistical_interval
+            lines.append(f"      of which the video's noise [{lo:.4g}, {hi:.4g}]{unit}; the discretisation "
+                         f"{discretisation_text(iv.parameter, iv.discretisation)}")
+    return lines
+
+
 def identifiable_table(intervals: list[ParameterInterval]) -> dict:
     """{object name: {parameter: {"identifiable": bool, "reason", "interval", "statistical_interval",
     "discretisation", "search_box", "evidence"}}} (the last two of :class:`ParameterInterval`; None where the
@@ -329,14 +344,7 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
         init = result.init_field[r.object_id]
         kind = "rigid (frozen)" if r.rigid else f"{r.source}; from E {init.E:.4g} Pa, nu {init.nu:.3f}"
         lines.append(f"  {r.name} (id {r.object_id}): E = {r.E:.4g} Pa, nu = {r.nu:.3f}  [{kind}]")
-    for iv in result.intervals:
-        unit = " Pa" if iv.parameter == "E" else ""
-        lines.append(f"    {iv.parameter} 90% interval [{iv.interval[0]:.4g}, {iv.interval[1]:.4g}]{unit}: "
-                     f"{'identifiable' if iv.identifiable else 'NOT identifiable'} ({iv.reason})")
-        if iv.discretisation is not None:
-            lo, hi = iv.statistical_interval
-            lines.append(f"      of which the video's noise [{lo:.4g}, {hi:.4g}]{unit}; the discretisation "
-                         f"{discretisation_text(iv.parameter, iv.discretisation)}")
+        lines += interval_lines([iv for iv in result.intervals if iv.object_id == r.object_id])
     if re is not None:
         lines.append(f"RE: E {re['re_E']:.3f}, nu {re['re_nu']:.3f}, G {re['re_G']:.3f}, K {re['re_K']:.3f}; "
                      f"mean {re['re_mean']:.3f}; |E/E_true - 1| mean {re['e_rel_error_mean']:.3f}, "
