@@ -12,7 +12,7 @@ from endogsim.bench.convergence import TARGET_RMS_CHANGE, convergence_case, run_
 from endogsim.cli.main import app
 from endogsim.errors import DataError
 
-CASE_KEYS = {"scene", "frames", "factor", "refine", "particles", "grid", "substeps", "particle_spacing_mm",
+CASE_KEYS = {"scene", "seed", "frames", "factor", "refine", "particles", "grid", "substeps", "particle_spacing_mm",
              "refined_particles", "refined_grid", "refined_substeps", "rms_motion_mm", "rms_motion_default_mm",
              "rms_change", "converged", "seconds", "refined_seconds"}
 
@@ -30,13 +30,15 @@ def _check_case(c: dict, frames: int) -> None:
 
 def test_cli_writes_the_cases_and_settings(tmp_path):
     out = tmp_path / "conv.json"
-    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--frames", "3", "--json", str(out)])
+    r = CliRunner().invoke(app, ["bench", "convergence", "--scenes", "tiny", "--frames", "3", "--seed", "1",
+                                 "--json", str(out)])
     assert r.exit_code == 0, r.output
     assert "rms change" in r.output and "tiny" in r.output
     res = json.loads(out.read_text())
     assert len(res["cases"]) == 1
     _check_case(res["cases"][0], 3)
     assert res["settings"]["scenes"] == ["tiny"] and res["settings"]["frames"] == 3
+    assert res["settings"]["seed"] == 1 and res["cases"][0]["seed"] == 1
     assert res["settings"]["target_rms_change"] == TARGET_RMS_CHANGE
 
 

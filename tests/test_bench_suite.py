@@ -205,6 +205,50 @@ def test_the_suite_runs_what_it_is_asked_and_no_clock_cuts_it(scenes_dir, tmp_pa
     assert [r[:2] for r in res["tables"]["table3"]["rows"]] == [["prior", "off"], ["prior", "on"]]
 
 
+def test_a_suite_scene_of_another_seed_is_the_same_experiment_on_another_texture(scenes_dir, tmp_path):
+    """``--seed 1`` synthesizes every scene on another texture and relief into its own folder (``_seed1``), runs it
+    into its own work folder, and says the seed in its records; seed 0's cached scene is left as it was."""
+    import numpy as np
+
+    from endogsim.bench.identify import ensure_scene
+    from endogsim.io.images import read_image
+    from endogsim.synth import load_scene_spec
+
+    seed0 = ensure_scene("tiny", scenes_dir, 3)
+    before = (seed0 / "scene.json").read_text()
+    res = run_suite(["tiny"], scenes_dir, tmp_path / "w", runs=["prior_on"], **SMALL, seed=1, log=lambda *a: None)
+    assert res["settings"]["seed"] == 1 and res["scenes"]["tiny"]["seed"] == 1 and res["refused"] == {}
+    assert (tmp_path / "w" / "tiny_seed1" / "prior_on" / "metrics.json").is_file()
+    seed1 = scenes_dir / "tiny_f3_seed1"
+    assert load_scene_spec(seed1).seed == 1 and (seed0 / "scene.json").read_text() == before
+    first = [sorted((f / "images").iterdir())[0] for f in (seed0, seed1)]
+    assert not np.array_equal(read_image(first[0]), read_image(first[1]))  # another texture
+    assert ensure_scene("tiny", scenes_dir, 3, seed=1) == seed1  # cached: the same folder, not made again
+
+
+def test_a_scene_whose_ground_truth_is_refused_is_left_out_and_named(tmp_path, monkeypatch):
+    """A seed whose ground truth the generator refuses (a bite torn out: numerical fracture) is no fair test: the
+    suite leaves the scene out of its tables and Table 2's note names it and why, instead of failing the suite."""
+    import endogsim.bench.suite as suite
+    from endogsim.errors import GroundTruthRefused
+
+    def fake_run_scene(name: str, **kwargs) -> dict:
+        if name == "pull":
+            raise GroundTruthRefused("scene pull: a grasper's bite tears out of the tissue: from frame 23 on")
+        return {**_fake(name, 0.1, 1.0), "seed": kwargs["seed"], "reused": False, "wall_seconds": 1.0}
+
+    monkeypatch.setattr(suite, "run_scene", fake_run_scene)
+    lines = []
+    res = run_suite(["press", "pull"], tmp_path / "scenes", tmp_path / "w", seed=1, log=lines.append)
+    assert list(res["scenes"]) == ["press"] and list(res["refused"]) == ["pull"]
+    assert [r[0] for r in res["tables"]["table2"]["rows"]] == ["press", "suite"]
+    assert ("LEFT OUT, its ground truth refused (no fair test at this seed): pull: scene pull: a grasper's bite "
+            "tears out" in res["tables"]["table2"]["note"])
+    assert any("pull: left out, its ground truth refused at seed 1" in str(line) for line in lines)
+    assert res["summary"]["objects"] == 1
+    json.dumps(res)
+
+
 def test_suite_on_a_local_ray_cluster(scenes_dir, tmp_path):
     pytest.importorskip("ray")  # ~30 s with the scene cached by the test above (Ray start-up included)
     res = run_suite(["tiny"], scenes_dir, tmp_path / "runs", ray=True, **SMALL, log=lambda *a: None)

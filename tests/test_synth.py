@@ -221,13 +221,13 @@ def test_a_ground_truth_that_has_not_settled_is_refused():
     leave 0.25%."""
     from dataclasses import replace
 
-    from endogsim.errors import SimulationError
+    from endogsim.errors import GroundTruthRefused
     from endogsim.synth.generate import simulate_built
 
     b = build_procedural("tiny", seed=0, frames=2, scale=0.25)
     assert (b.settle_frames, b.settle_damping) == (8, 200.0)
     simulate_built(b)
-    with pytest.raises(SimulationError, match=r"scene tiny: the ground truth's settling \(2 frames at 400/s\)"
+    with pytest.raises(GroundTruthRefused, match=r"scene tiny: the ground truth's settling \(2 frames at 400/s\)"
                                               r".*% of a grid cell.*raise settle_frames"):
         simulate_built(replace(b, settle_frames=2, settle_damping=400.0))
 
@@ -240,7 +240,7 @@ def test_a_ground_truth_whose_grasper_tears_its_bite_out_is_refused(monkeypatch)
     from dataclasses import replace
 
     import endogsim.synth.scenes as scenes
-    from endogsim.errors import SimulationError
+    from endogsim.errors import GroundTruthRefused
     from endogsim.synth.generate import simulate_built
     from endogsim.synth.suite import scene_spec
 
@@ -256,7 +256,7 @@ def test_a_ground_truth_whose_grasper_tears_its_bite_out_is_refused(monkeypatch)
         return s
 
     monkeypatch.setattr(scenes, "scene_spec", lifted_16_mm)
-    with pytest.raises(SimulationError, match=r"scene stomach: a grasper's bite tears out of the tissue: from frame "
+    with pytest.raises(GroundTruthRefused, match=r"scene stomach: a grasper's bite tears out of the tissue: from frame "
                                               r"\d+ on.*1.5 grid cells.*gentler path"):
         simulate_built(at_identification(build_procedural("stomach", seed=0)))
 
@@ -280,7 +280,7 @@ def test_a_ground_truth_whose_tissue_parts_is_refused(monkeypatch, tmp_path):
     of its footprint at frame 8; ~20 s); lifted straight, as the suite's scene is, it opens nothing (the demo's
     tests synthesize it)."""
     import endogsim.synth.scenes as scenes
-    from endogsim.errors import SimulationError
+    from endogsim.errors import GroundTruthRefused
     from endogsim.synth.suite import scene_spec
 
     def drawn_sideways(name):
@@ -290,8 +290,9 @@ def test_a_ground_truth_whose_tissue_parts_is_refused(monkeypatch, tmp_path):
         return s
 
     monkeypatch.setattr(scenes, "scene_spec", drawn_sideways)
-    with pytest.raises(SimulationError, match=r"scene tiny_lift: the ground truth's tissue parts: from frame \d+ on, "
-                                              r"the background shows through more than 0.1% of its frame-0 footprint"):
+    with pytest.raises(GroundTruthRefused,
+                       match=r"scene tiny_lift: the ground truth's tissue parts: from frame \d+ on, "
+                             r"the background shows through more than 0.1% of its frame-0 footprint"):
         synthesize("tiny_lift", tmp_path / "drawn", seed=0)
 
 

@@ -26,6 +26,12 @@ class SimulationError(EndoGSimError):
     """The simulation was refused (unstable time step) or diverged (NaN/inf)."""
 
 
+class GroundTruthRefused(SimulationError):
+    """A synthesized scene's ground truth fails the generator's own checks (it has not settled by frame 0, or a
+    grasper's bite tears out or the tissue parts: numerical fracture by an amount the grid sets), so the scene
+    would be no fair test of identification; the benchmarks leave such a scene out and name it."""
+
+
 class IdentificationError(EndoGSimError):
     """Identification cannot go on: a loss term or a gradient is NaN/inf (the message names the frame and
     the quantity)."""

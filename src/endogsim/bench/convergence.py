@@ -72,12 +72,13 @@ def _rms_mm(m: torch.Tensor) -> float:
 
 
 def convergence_case(name: str, frames: int | None = None, factor: int = 2,
-                     refine: tuple[str, ...] = REFINE_PARTS) -> dict:
-    """The RMS motion change of suite scene ``name`` between identification's discretisation and its
-    ``factor``-times refinement of the ``refine`` parts of :data:`REFINE_PARTS` (see the module docstring)."""
+                     refine: tuple[str, ...] = REFINE_PARTS, seed: int = 0) -> dict:
+    """The RMS motion change of suite scene ``name`` (built with ``seed``: its texture and relief) between
+    identification's discretisation and its ``factor``-times refinement of the ``refine`` parts of
+    :data:`REFINE_PARTS` (see the module docstring)."""
     from endogsim.synth.scenes import build_procedural
 
-    b = build_procedural(name, seed=0, frames=frames)
+    b = build_procedural(name, seed=seed, frames=frames)
     fine = _refined(b, factor, refine)
     t0 = time.perf_counter()
     coarse, n_coarse, sub_coarse = motion_of(b, _refined(b, 1))
@@ -85,7 +86,8 @@ def convergence_case(name: str, frames: int | None = None, factor: int = 2,
     refined, n_fine, sub_fine = motion_of(b, fine)
     t2 = time.perf_counter()
     change = _rms_change(coarse, refined)
-    return {"scene": name, "frames": b.frames, "factor": factor, "refine": list(refine), "particles": n_coarse,
+    return {"scene": name, "seed": seed, "frames": b.frames, "factor": factor, "refine": list(refine),
+            "particles": n_coarse,
             "grid": b.identification.grid, "substeps": sub_coarse,
             "particle_spacing_mm": 1e3 * b.identification.particle_spacing,
             "refined_particles": n_fine, "refined_grid": fine.grid, "refined_substeps": sub_fine,
@@ -94,19 +96,20 @@ def convergence_case(name: str, frames: int | None = None, factor: int = 2,
             "seconds": round(t1 - t0, 1), "refined_seconds": round(t2 - t1, 1)}
 
 
-def refinement_sequence(name: str, factors: list[int], frames: int | None = None) -> dict:
+def refinement_sequence(name: str, factors: list[int], frames: int | None = None, seed: int = 0) -> dict:
     """Suite scene ``name`` at identification's discretisation refined by each of ``factors`` (increasing;
     1 is the default itself), and the RMS motion change from each level to the next: how fast the motion
     settles under refinement (a change that does not fall does not converge).
 
     Returns:
-        {"scene", "frames", "factors", "grid", "particles", "substeps", "rms_motion_mm", "seconds": one per
+        {"scene", "seed", "frames", "factors", "grid", "particles", "substeps", "rms_motion_mm", "seconds": one per
         level; "changes": one per pair of consecutive levels}
     """
     from endogsim.synth.scenes import build_procedural
 
-    b = build_procedural(name, seed=0, frames=frames)
-    out = {"scene": name, "frames": b.frames, "factors": list(factors), "grid": [], "particles": [], "substeps": [],
+    b = build_procedural(name, seed=seed, frames=frames)
+    out = {"scene": name, "seed": seed, "frames": b.frames, "factors": list(factors), "grid": [], "particles": [],
+           "substeps": [],
            "rms_motion_mm": [], "seconds": []}
     motions = []
     for f in factors:
@@ -124,10 +127,11 @@ def refinement_sequence(name: str, factors: list[int], frames: int | None = None
 
 
 def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log=None,
-              levels: list[int] | None = None, refine: tuple[str, ...] = REFINE_PARTS) -> dict:
+              levels: list[int] | None = None, refine: tuple[str, ...] = REFINE_PARTS, seed: int = 0) -> dict:
     """:func:`convergence_case` for every scene in ``scenes`` (suite names; checked before any work) refining
     the ``refine`` parts, or with ``levels`` (increasing refinement factors from 1, every part) its
-    :func:`refinement_sequence` instead.
+    :func:`refinement_sequence` instead; every scene built with ``seed`` (0: the figures of record; another
+    seed is the same scene on another texture and relief).
 
     Returns:
         {"cases": [convergence_case(...), ...] or "sequences": [refinement_sequence(...), ...], "settings":
@@ -149,14 +153,14 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
         raise DataError("a refinement sequence (levels) refines every part; refine one part with a factor instead")
     if levels is not None and (len(levels) < 2 or levels[0] != 1 or any(b <= a for a, b in zip(levels, levels[1:]))):
         raise DataError(f"refinement levels {levels} must start at 1 and increase (e.g. 1,2,3)")
-    settings = {"scenes": list(scenes), "frames": frames, "target_rms_change": TARGET_RMS_CHANGE, "seed": 0,
+    settings = {"scenes": list(scenes), "frames": frames, "target_rms_change": TARGET_RMS_CHANGE, "seed": seed,
                 "generator_revision": GENERATOR_REVISION, "push_contact_cells": PUSH_CONTACT_CELLS,
                 "threads": torch.get_num_threads()}
     if levels is not None:
         key, extra = "sequences", {"levels": list(levels)}
 
         def measure(name: str) -> dict:
-            return refinement_sequence(name, levels, frames)
+            return refinement_sequence(name, levels, frames, seed)
 
         def describe(q: dict) -> str:
             return (f"rms changes {', '.join(f'{c:.3f}' for c in q['changes'])} "
@@ -165,7 +169,7 @@ def run_bench(scenes: list[str], frames: int | None = None, factor: int = 2, log
         key, extra = "cases", {"factor": factor, "refine": list(refine)}
 
         def measure(name: str) -> dict:
-            return convergence_case(name, frames, factor, refine)
+            return convergence_case(name, frames, factor, refine, seed)
 
         def describe(c: dict) -> str:
             return (f"rms change {c['rms_change']:.3f} ({c['particles']} particles, grid {c['grid']}; "

@@ -22,24 +22,31 @@ ALL_SCENES = ("press", "pull", "two_tissues", "stomach", "gallbladder")
 SCENES_CACHE = Path.home() / ".cache" / "endogsim" / "bench_scenes"  # default of every bench's --scenes-dir
 
 
-def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: float | None = None) -> Path:
+def ensure_scene(name: str, scenes_dir: Path, frames: int | None = None, scale: float | None = None,
+                 seed: int = 0) -> Path:
     """The folder of benchmark scene ``name`` under ``scenes_dir``, synthesized if missing.
 
     Args:
         frames: number of frames (default: the suite's); scale: image-size factor (default 1).
+        seed: the scene's texture, relief and noise (:func:`endogsim.synth.synthesize`; 0: the suite's figures).
+            Another seed is the same experiment on another surface: the folder name says ``_seedS``.
+    Raises:
+        GroundTruthRefused: the ground truth of this seed fails the generator's own checks (no fair test).
     """
     from endogsim.errors import DataError
     from endogsim.synth import load_scene_spec, synthesize
     from endogsim.synth.suite import GENERATOR_REVISION
 
-    tag = name + ("" if frames is None else f"_f{frames}") + ("" if scale in (None, 1.0) else f"_s{scale:g}")
+    tag = (name + ("" if frames is None else f"_f{frames}") + ("" if scale in (None, 1.0) else f"_s{scale:g}")
+           + ("" if seed == 0 else f"_seed{seed}"))
     folder = scenes_dir / tag
     try:
-        fresh = load_scene_spec(folder).generator == GENERATOR_REVISION
+        spec = load_scene_spec(folder)
+        fresh = spec.generator == GENERATOR_REVISION and spec.seed == seed
     except DataError:  # missing or unreadable
         fresh = False
     if not fresh:  # a scene from an older generator has another ground truth
-        synthesize(name, folder, seed=0, frames=frames, scale=scale)
+        synthesize(name, folder, seed=seed, frames=frames, scale=scale)
     return folder
 
 

@@ -36,6 +36,12 @@ A suite takes about 40 minutes on a 2-core CPU (hours at ``--refine 1.5``), so i
 is written to ``WORK/NAME/scene_result.json`` when the scene is done, and a later run into the same work folder
 reuses it when everything the record depends on is the same (the settings, the synthesized scene's files and
 this package's code); ``--fresh`` runs every scene again.
+
+``--seed S`` runs the suite on another texture, relief and noise of every scene (the same experiment on another
+surface: the instrument's path follows the relief, :mod:`endogsim.synth.scenes`); the figures of record are seed
+0's. A seed whose ground truth the generator refuses (it tears a bite out or parts the tissue: numerical
+fracture, :class:`~endogsim.errors.GroundTruthRefused`) is no fair test at that seed: the scene is left out of the
+tables, and Table 2's note names it and why.
 """
 
 from __future__ import annotations
@@ -48,12 +54,13 @@ from pathlib import Path
 from typing import Sequence
 
 from endogsim.bench.identify import SCENES_CACHE
-from endogsim.errors import EndoGSimError
+from endogsim.errors import EndoGSimError, GroundTruthRefused
 from endogsim.identify.config import DEFAULT_REFINED_CORRECTION
 from endogsim.io.atomic import write_json_atomic
 from endogsim.io.runfolder import code_digest, json_digest, tree_digest
 
-__all__ = ["run_scene", "run_suite", "suite_tables", "object_results", "interval_summary", "suite_objects",
+__all__ = ["run_scene", "scene_or_refusal", "run_suite", "suite_tables", "object_results", "interval_summary",
+           "suite_objects",
            "DEFAULT_ITERS", "RUN_KEYS"]
 
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
@@ -103,14 +110,15 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
               fid_weights: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
               refined_correction: float | None = DEFAULT_REFINED_CORRECTION,
-              device: str = "cpu", fresh: bool = False, workers: int | None = None) -> dict:
+              device: str = "cpu", fresh: bool = False, workers: int | None = None, seed: int = 0) -> dict:
     """Synthesize (or reuse) scene ``name`` and run its identifications (or reuse their stored record); the unit
     of work of both paths.
 
     Args:
         name: suite scene.
         scenes_dir: cache of synthesized scenes (``NAME`` or ``NAME_fFRAMES``).
-        work_dir: run folders go to ``work_dir/NAME/{manual,prior}_{off,on}`` (and ``global_on``).
+        work_dir: run folders go to ``work_dir/NAME/{manual,prior}_{off,on}`` (and ``global_on``;
+            ``NAME_seedS`` for a seed other than 0).
         iters: optimisation iterations of the "on" runs.
         frames: synthesize only this many frames (default: the suite's).
         render_scale: identification render scale.
@@ -133,8 +141,11 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
             the same settings, scene and code (module docstring).
         workers: simulations run side by side (:func:`~endogsim.warp_runtime.simulations_side_by_side`; None: one
             per torch thread). The results do not depend on it, only the time does.
+        seed: the scene's seed (:func:`~endogsim.bench.identify.ensure_scene`; 0: the suite's figures).
+    Raises:
+        GroundTruthRefused: the generator refuses this seed's ground truth (:func:`scene_or_refusal` records it).
     Returns:
-        {"scene", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
+        {"scene", "seed", "folder", "runs": {key: {re_mean, re_E, re_nu, e_rel_error_mean, e_rel_error_median, epe,
         psnr, ssim, fid, seconds (optimisation), iterations, seconds_per_iteration, stopped, stopped_by_budget,
         wall_seconds (the whole identification: optimisation, intervals and evaluation), stage_seconds (its
         stages', metrics.json's), materials}},
@@ -152,14 +163,14 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         torch.set_num_threads(threads)
     check_coarser_than_ground_truth([name], refine, refined_correction)
     t0 = time.perf_counter()
-    work = Path(work_dir) / name
-    folder = ensure_scene(name, Path(scenes_dir), frames)
+    work = Path(work_dir) / (name if seed == 0 else f"{name}_seed{seed}")
+    folder = ensure_scene(name, Path(scenes_dir), frames, seed=seed)
     plan = [(run_key(init, on), init, on, False) for init, on in RUNS]
     if global_ablation if global_ablation is not None else name == ABLATION_SCENE:
         plan.append(("global_on", "prior", True, True))
     plan = [p for p in plan if runs is None or p[0] in runs]
     record_file = work / "scene_result.json"
-    signature = json_digest({"scene": name, "scene_files": tree_digest(folder), "code": code_digest(),
+    signature = json_digest({"scene": name, "seed": seed, "scene_files": tree_digest(folder), "code": code_digest(),
                              "runs": [p[0] for p in plan], "iters": iters, "frames": frames,
                              "render_scale": render_scale, "fid_weights": tree_digest(fid_weights) if fid_weights
                              else None, "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
@@ -196,9 +207,19 @@ def run_scene(name: str, scenes_dir: str | os.PathLike, work_dir: str | os.PathL
         rec["materials"] = object_results(m, truth)
         rec["fid"] = _run_fid(problem, work / key, net, cfg) if net is not None else None
         done[key] = rec
-    result = {"scene": name, "folder": str(folder), "runs": done, "wall_seconds": time.perf_counter() - t0}
+    result = {"scene": name, "seed": seed, "folder": str(folder), "runs": done,
+              "wall_seconds": time.perf_counter() - t0}
     write_json_atomic(record_file, {"signature": signature, "result": result})
     return {**result, "reused": False}
+
+
+def scene_or_refusal(**kwargs) -> dict:
+    """:func:`run_scene` (``kwargs`` its arguments), or where the generator refuses the scene's ground truth at
+    this seed, the record {"scene", "seed", "refused": why} (the suite leaves the scene out and names it)."""
+    try:
+        return run_scene(**kwargs)
+    except GroundTruthRefused as exc:
+        return {"scene": kwargs["name"], "seed": kwargs.get("seed", 0), "refused": str(exc)}
 
 
 def object_results(metrics: dict, truth: dict[str, tuple[float, float]]) -> dict[str, dict]:
@@ -284,7 +305,7 @@ def _run_fid(problem, run_dir: Path, net, config) -> float:
 
 
 def _ray_map(kwargs_list: list[dict], address: str | None, log) -> list[dict]:
-    """:func:`run_scene` over ``kwargs_list`` as Ray tasks; results in input order."""
+    """:func:`scene_or_refusal` over ``kwargs_list`` as Ray tasks; results in input order."""
     try:
         import ray
     except ImportError:
@@ -299,7 +320,7 @@ def _ray_map(kwargs_list: list[dict], address: str | None, log) -> list[dict]:
             ray.init(include_dashboard=False, runtime_env=env, log_to_driver=False)
     try:
         log(f"ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs, {len(kwargs_list)} scene tasks")
-        task = ray.remote(num_cpus=1, max_retries=0)(run_scene)
+        task = ray.remote(num_cpus=1, max_retries=0)(scene_or_refusal)
         refs = [task.remote(**{**kw, "threads": 1}) for kw in kwargs_list]
         try:
             return ray.get(refs)
@@ -319,7 +340,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
               ray_address: str | None = None, threads: int | None = None, runs: Sequence[str] | None = None,
               time_budget: float | None = None, optimizer: str = "rprop", refine: float = 1.0,
               refined_correction: float | None = DEFAULT_REFINED_CORRECTION,
-              device: str = "cpu", fresh: bool = False, workers: int | None = None, log=print) -> dict:
+              device: str = "cpu", fresh: bool = False, workers: int | None = None, seed: int = 0,
+              log=print) -> dict:
     """Run the suite (module docstring) and build the tables.
 
     Args:
@@ -343,8 +365,10 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         device: identification's device ("cpu" or "cuda"): the same computation in another order of
             floating-point sums.
         fresh: run every scene again, even one whose stored record this run could reuse (module docstring).
+        seed: every scene's seed (default 0, the figures of record; module docstring).
     Returns:
-        {"settings", "scenes": {name: run_scene(...)}, "tables": suite_tables(...), "summary":
+        {"settings", "scenes": {name: run_scene(...)}, "refused": {name: why} (scenes left out: the generator
+        refused their ground truth at this seed), "tables": suite_tables(...), "summary":
         interval_summary(...) over the suite's objects (full method), "wall_seconds"}
     """
     from endogsim.synth.suite import suite_scene_names
@@ -372,7 +396,8 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
     n_fr = frames if frames is not None else (4 if quick else None)
     kw = [dict(name=s, scenes_dir=str(scenes_dir), work_dir=str(work_dir), iters=n_it, frames=n_fr,
                fid_weights=str(fid_weights) if fid_weights else None, runs=runs, time_budget=time_budget,
-               optimizer=optimizer, refine=refine, refined_correction=refined_correction, device=device, fresh=fresh)
+               optimizer=optimizer, refine=refine, refined_correction=refined_correction, device=device, fresh=fresh,
+               seed=seed)
           for s in scenes]
     if fid_weights:  # fail before hours of work, not after
         from endogsim.evaluate.fid import load_inception
@@ -384,16 +409,21 @@ def run_suite(scenes: list[str] | None = None, scenes_dir: str | os.PathLike = S
         results = []
         for k in kw:
             log(f"scene {k['name']} ...")
-            results.append(run_scene(**k, threads=threads, workers=workers))
-    per_scene = {r["scene"]: r for r in results}
+            results.append(scene_or_refusal(**k, threads=threads, workers=workers))
+    per_scene = {r["scene"]: r for r in results if "refused" not in r}
+    refused = {r["scene"]: r["refused"] for r in results if "refused" in r}
     for r in results:
+        if "refused" in r:
+            log(f"  {r['scene']}: left out, its ground truth refused at seed {seed}")
+            continue
         log(f"  {r['scene']}: {r['wall_seconds']:.0f} s" + (" (its stored record: the same settings, scene and "
                                                            "code)" if r["reused"] else ""))
     return {"settings": {"scenes": scenes, "iters": n_it, "frames": n_fr, "quick": quick, "ray": ray,
                          "ray_address": ray_address, "fid": bool(fid_weights), "runs": runs or list(RUN_KEYS),
                          "time_budget": time_budget, "optimizer": optimizer, "refine": refine,
-                         "refined_correction": refined_correction, "device": device, "workers": workers},
-            "scenes": per_scene, "tables": suite_tables(per_scene),
+                         "refined_correction": refined_correction, "device": device, "workers": workers,
+                         "seed": seed},
+            "scenes": per_scene, "refused": refused, "tables": suite_tables(per_scene, refused),
             "summary": interval_summary(suite_objects(per_scene)), "wall_seconds": time.perf_counter() - t0}
 
 
@@ -425,9 +455,10 @@ def _identifiable_text(objs: list[dict]) -> str:
     return ", ".join(parts)
 
 
-def suite_tables(per_scene: dict[str, dict]) -> dict:
+def suite_tables(per_scene: dict[str, dict], refused: dict[str, str] | None = None) -> dict:
     """Table 2, its per-object intervals, Table 3 and the material-field ablation from :func:`run_scene`
-    results."""
+    results; ``refused`` ({name: why}, scenes whose ground truth the generator refused) are named in Table 2's
+    note."""
     names = list(per_scene)
     full = {n: per_scene[n]["runs"][FULL_METHOD] for n in names}
     rows2, rows_obj = [], []
@@ -486,7 +517,9 @@ def suite_tables(per_scene: dict[str, dict]) -> dict:
                            "its 90% interval; identify s: the whole identification (iterations, intervals, "
                            "evaluation); "
                            + (f"cut by the time budget: {', '.join(cut)}" if cut else "no run was cut by a time "
-                              "budget")},
+                              "budget")
+                           + "".join(f"; LEFT OUT, its ground truth refused (no fair test at this seed): {n}: {why}"
+                                     for n, why in (refused or {}).items())},
         "table2_objects": {"title": "Table 2 per object: identified vs true materials and 90% intervals",
                            "columns": ["scene", "object", "E true (Pa)", "E (Pa)", "|E/E_true-1|", "E 90% lo (Pa)",
                                        "E 90% hi (Pa)", "E width (decades)", "E identifiable", "nu true", "nu",

@@ -152,6 +152,9 @@ def register(bench_app: typer.Typer) -> None:
         quick: bool = typer.Option(False, "--quick", help="tiny, 4 frames, 2 iterations: a smoke run (minutes)."),
         fresh: bool = typer.Option(False, "--fresh", help="Run every scene again (by default a scene whose record in "
                                    "the work folder was made with the same settings, scene and code is reused)."),
+        seed: int = typer.Option(0, "--seed", help="Every scene's texture, relief and noise (default 0, the figures "
+                                 "of record): the same experiments on other surfaces. A scene whose ground truth "
+                                 "the generator refuses at this seed is left out and named."),
         fid_weights: Optional[Path] = typer.Option(None, "--fid-weights", help="Local Inception-v3 weights for FID."),
         threads: Optional[int] = typer.Option(None, "--threads", help="Torch threads in this process (Ray tasks use 1)."),
         workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Simulations run side by side (default: "
@@ -172,12 +175,13 @@ def register(bench_app: typer.Typer) -> None:
                         ray_address=ray_address, threads=threads, runs=runs.split(",") if runs else None,
                         time_budget=time_budget, optimizer=optimizer, refine=refine,
                         refined_correction=refined_correction or None, device=device, fresh=fresh, workers=workers,
-                        log=console.print)
+                        seed=seed, log=console.print)
         for t in res["tables"].values():
             print_table(t["title"], t["columns"], t["rows"])
             if t.get("note"):
                 console.print(f"  ({t['note']})")
-        console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'})")
+        console.print(f"suite wall time {res['wall_seconds']:.1f} s ({'ray' if use_ray else 'in-process'}), seed {seed}"
+                      + (f"; left out (ground truth refused): {', '.join(res['refused'])}" if res["refused"] else ""))
         if json_out is not None:
             write_json_atomic(json_out, res)
             console.print(f"wrote {json_out}")
@@ -197,6 +201,8 @@ def register(bench_app: typer.Typer) -> None:
                                    "(comma-separated): e.g. substeps alone asks whether the motion is converged "
                                    "in time at identification's grid; grid alone takes the substeps its CFL rule "
                                    "asks for."),
+        seed: int = typer.Option(0, "--seed", help="Every scene's texture and relief (default 0, the figures of "
+                                 "record)."),
     ) -> None:
         """Is identification's discretisation converged? Each scene's ground-truth simulation at identification's
         grid, particles and substeps vs refined 2x: the RMS change of the tissue's motion (target <= 0.05)."""
@@ -209,7 +215,7 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter("--frames must be >= 2")
         if levels is not None:
             steps = parse_counts(levels, "--levels")
-            res = run_bench(names, frames, log=console.print, levels=steps, refine=parts)
+            res = run_bench(names, frames, log=console.print, levels=steps, refine=parts, seed=seed)
             print_table(f"Refinement sequence {' -> '.join(f'{f}x' for f in steps)}: RMS motion change from each "
                         "level to the next",
                         ["scene", "particles", "grid", "rms motion (mm)", "rms changes", "seconds"],
@@ -221,7 +227,7 @@ def register(bench_app: typer.Typer) -> None:
                 write_json_atomic(json_out, res)
                 console.print(f"wrote {json_out}")
             return
-        res = run_bench(names, frames, factor=factor, log=console.print, refine=parts)
+        res = run_bench(names, frames, factor=factor, log=console.print, refine=parts, seed=seed)
         print_table(f"Discretisation convergence: motion change under a {factor}x refinement of the "
                     f"{', '.join(parts)} (target rms change <= {TARGET_RMS_CHANGE})",
                     ["scene", "particles", "grid", "substeps", "refined grid", "refined particles",

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from endogsim.determinism import deterministic
-from endogsim.errors import DataError, SimulationError
+from endogsim.errors import DataError, GroundTruthRefused, SimulationError
 from endogsim.gaussians.flow import render_with_flow
 from endogsim.gaussians.model import Gaussians, covariance_to_scale_rot
 from endogsim.gaussians.ply import write_ply
@@ -118,7 +118,7 @@ def simulate_built(b: BuiltScene) -> tuple[torch.Tensor, torch.Tensor, ScenePart
                               f"scene.json records {b.ground_truth.substeps}")
     cells = scenario.settling_cells(res.settling_left, config.grid_res)
     if cells > SETTLING_TOLERANCE:  # the rest of the settling would move in the video as if a tool did it
-        raise SimulationError(
+        raise GroundTruthRefused(
             f"scene {b.name}: the ground truth's settling ({b.settle_frames} frames at "
             f"{scenario.damping_of_frame(0, config.damping):g}/s) still "
             f"moves a particle by {1e3 * res.settling_left:.4f} mm in its last frame ({100 * cells:.2f}% of a "
@@ -142,7 +142,7 @@ def _check_bites(b: BuiltScene, filled: SceneParticles, scenario: Scenario, posi
     spacing = _scene_spec(b, seed=0).scenario.spacing(b.ground_truth)
     for bite in bite_records(filled.particles.x, positions, scenario.colliders, spacing, dx):
         if bite["torn"]:
-            raise SimulationError(
+            raise GroundTruthRefused(
                 f"scene {b.name}: a grasper's bite tears out of the tissue: from frame {bite['torn_from']} on, the "
                 f"tissue around it lies more than the {bite['tolerance_cells']:g} grid cells a B-spline stencil "
                 f"reaches from the bite (median; {bite['ring_cells_max']:.2f} cells at frame {bite['frame_of_max']}): "
@@ -157,7 +157,7 @@ def _check_parted(b: BuiltScene, ids: np.ndarray) -> None:
     share = parted_share(ids)
     if share.max() > PARTED_LIMIT:
         first = int(np.argmax(share > PARTED_LIMIT))
-        raise SimulationError(
+        raise GroundTruthRefused(
             f"scene {b.name}: the ground truth's tissue parts: from frame {first} on, the background shows through "
             f"more than {100 * PARTED_LIMIT:g}% of its frame-0 footprint ({100 * share.max():.2f}% at frame "
             f"{int(np.argmax(share))}): numerical fracture beside an instrument, by an amount the grid sets; give the "
