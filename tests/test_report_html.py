@@ -211,3 +211,14 @@ def test_unreadable_instrument_records_do_not_fail_the_report(tmp_path):
                                                   "folder": str(scene)}))
     html = write_report(run).read_text()
     assert "<h2>Instruments</h2>" in html and "could not be read" in html
+
+
+def test_the_settling_says_whether_gravity_acted():
+    from endogsim.evaluate.report_html import settling_text
+
+    settle = {"frames": 8, "last_frame_motion_m": 1e-6, "cells": 0.001, "settled": True, "tolerance_cells": 0.02}
+    assert settling_text({**settle, "gravity": True}).startswith("8 frames under gravity before frame 0")
+    # impulse_paper settles with gravity off: the tissue relaxes against the instruments, it carries no weight
+    assert settling_text({**settle, "gravity": False}).startswith("8 frames without gravity, the instruments at "
+                                                                  "their frame-0 pose, before frame 0")
+    assert "under gravity" in settling_text(settle)  # a record written before "gravity" was recorded

@@ -177,7 +177,10 @@ def settling_text(settle: dict) -> str:
     verdict = "settled" if settle["settled"] else (
         "NOT settled: the rest moves in the clip (a real video starts at equilibrium; a fit reads that motion "
         "as the tissue's response)")
-    return (f"{settle['frames']} frames under gravity before frame 0; in the last, a particle still moved "
+    # A record from before "gravity" was recorded keeps the wording it was written with.
+    acting = ("under gravity" if settle.get("gravity", True)
+              else "without gravity, the instruments at their frame-0 pose,")
+    return (f"{settle['frames']} frames {acting} before frame 0; in the last, a particle still moved "
             f"{1e3 * settle['last_frame_motion_m']:.4f} mm ({100 * settle['cells']:.2f}% of a grid cell; tolerance "
             f"{100 * settle['tolerance_cells']:.0f}%): {verdict}")
 

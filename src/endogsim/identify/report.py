@@ -155,10 +155,12 @@ def correction_record(result: IdentifyResult, field_refine: float) -> dict | Non
 
 def settling_record(problem: SimScene, settling_left: float) -> dict:
     """What the settling before frame 0 left (``settling_left``: :attr:`endogsim.physics.SimResult.
-    settling_left`, metres): {"frames", "last_frame_motion_m", "cells" (of the grid), "settled" (at most
-    "tolerance_cells", :data:`SETTLING_TOLERANCE`)}."""
+    settling_left`, metres): {"frames", "gravity" (whether gravity acted: without it the settling relaxes the
+    tissue against the instruments at their frame-0 pose), "last_frame_motion_m", "cells" (of the grid), "settled"
+    (at most "tolerance_cells", :data:`SETTLING_TOLERANCE`)}."""
     cells = problem.scenario.settling_cells(settling_left, problem.mpm.grid_res)
-    return {"frames": problem.scenario.settle_frames, "last_frame_motion_m": settling_left, "cells": cells,
+    return {"frames": problem.scenario.settle_frames, "gravity": any(float(g) != 0.0 for g in problem.scenario.gravity),
+            "last_frame_motion_m": settling_left, "cells": cells,
             "settled": bool(cells <= SETTLING_TOLERANCE), "tolerance_cells": SETTLING_TOLERANCE}
 
 
