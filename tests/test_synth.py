@@ -228,7 +228,7 @@ def test_a_ground_truth_that_has_not_settled_is_refused():
     assert (b.settle_frames, b.settle_damping) == (8, 200.0)
     simulate_built(b)
     with pytest.raises(GroundTruthRefused, match=r"scene tiny: the ground truth's settling \(2 frames at 400/s\)"
-                                              r".*% of a grid cell.*raise settle_frames"):
+                                                 r".*% of a grid cell.*raise settle_frames"):
         simulate_built(replace(b, settle_frames=2, settle_damping=400.0))
 
 
@@ -256,8 +256,9 @@ def test_a_ground_truth_whose_grasper_tears_its_bite_out_is_refused(monkeypatch)
         return s
 
     monkeypatch.setattr(scenes, "scene_spec", lifted_16_mm)
-    with pytest.raises(GroundTruthRefused, match=r"scene stomach: a grasper's bite tears out of the tissue: from frame "
-                                              r"\d+ on.*1.5 grid cells.*gentler path"):
+    with pytest.raises(GroundTruthRefused,
+                       match=r"scene stomach: a grasper's bite tears out of the tissue: from frame "
+                             r"\d+ on.*1.5 grid cells.*gentler path"):
         simulate_built(at_identification(build_procedural("stomach", seed=0)))
 
 

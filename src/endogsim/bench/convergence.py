@@ -87,8 +87,7 @@ def convergence_case(name: str, frames: int | None = None, factor: int = 2,
     t2 = time.perf_counter()
     change = _rms_change(coarse, refined)
     return {"scene": name, "seed": seed, "frames": b.frames, "factor": factor, "refine": list(refine),
-            "particles": n_coarse,
-            "grid": b.identification.grid, "substeps": sub_coarse,
+            "particles": n_coarse, "grid": b.identification.grid, "substeps": sub_coarse,
             "particle_spacing_mm": 1e3 * b.identification.particle_spacing,
             "refined_particles": n_fine, "refined_grid": fine.grid, "refined_substeps": sub_fine,
             "rms_motion_mm": _rms_mm(refined), "rms_motion_default_mm": _rms_mm(coarse), "rms_change": change,
@@ -109,8 +108,7 @@ def refinement_sequence(name: str, factors: list[int], frames: int | None = None
 
     b = build_procedural(name, seed=seed, frames=frames)
     out = {"scene": name, "seed": seed, "frames": b.frames, "factors": list(factors), "grid": [], "particles": [],
-           "substeps": [],
-           "rms_motion_mm": [], "seconds": []}
+           "substeps": [], "rms_motion_mm": [], "seconds": []}
     motions = []
     for f in factors:
         settings = _refined(b, f)

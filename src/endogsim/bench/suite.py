@@ -60,8 +60,7 @@ from endogsim.io.atomic import write_json_atomic
 from endogsim.io.runfolder import code_digest, json_digest, tree_digest
 
 __all__ = ["run_scene", "scene_or_refusal", "run_suite", "suite_tables", "object_results", "interval_summary",
-           "suite_objects",
-           "DEFAULT_ITERS", "RUN_KEYS"]
+           "suite_objects", "DEFAULT_ITERS", "RUN_KEYS"]
 
 RUNS = (("manual", False), ("manual", True), ("prior", False), ("prior", True))
 ABLATION_SCENE = "two_tissues"
