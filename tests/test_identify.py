@@ -158,6 +158,36 @@ def test_materials_are_simulated_at_the_discretisation_they_were_identified_at(t
         assert run["discretisation"]["substeps_at_materials"] == run["substeps"] >= run["discretisation"]["substeps"]
 
 
+def test_materials_are_simulated_with_the_substeps_they_were_identified_with(tiny, problem, tmp_path):
+    """Identification plans its time step once, at its starting materials; the materials file records that floor
+    and ``simulate`` keeps it, so a field softer than its start (whose CFL count alone is smaller) moves as
+    identification saw it move. Without the record (a hand-written file), or at another discretisation, the CFL
+    rule alone decides."""
+    from endogsim.identify import run_identify
+    from endogsim.pipeline.interaction import load_interaction
+    from endogsim.pipeline.simulate import identified_substeps, simulate_interaction
+
+    stiff = field_from_truth(problem, 20.0)
+    stiff.save(tmp_path / "stiff.json")
+    m = run_identify(tiny, tmp_path / "run", init=str(tmp_path / "stiff.json"), config=fast_config(iters=0),
+                     video=False, problem=problem)
+    fitted = MaterialField.load(tmp_path / "run" / "materials_identified.json")
+    floor = m["discretisation"]["substeps"]
+    assert fitted.meta["substeps"] == floor > problem.mpm.substeps_per_frame  # planned at the stiff start
+    soft = MaterialField([r.model_copy(update={"E": r.E / 20.0}) if not r.rigid else r for r in fitted.records],
+                         meta=dict(fitted.meta))
+    cfl = problem.simulator().timestep(soft.simulator_materials(), problem.particles.v).substeps
+    assert cfl < floor and identified_substeps(soft, 1.0) == floor and identified_substeps(soft, 1.5) == 0
+    poke = load_interaction("poke").model_copy(update={"frames": 2})
+    kept = simulate_interaction(tiny, poke, soft, tmp_path / "kept", write_ply_sequence=False)
+    assert kept["substeps"] == kept["discretisation"]["substeps"] == floor
+    soft.meta.pop("substeps")
+    alone = simulate_interaction(tiny, poke, soft, tmp_path / "alone", write_ply_sequence=False)
+    assert alone["substeps"] == cfl
+    with pytest.raises(MaterialError, match="'substeps' is 'many'"):
+        identified_substeps(MaterialField(soft.records, meta={"refine": 1.0, "substeps": "many"}), 1.0)
+
+
 def test_the_refined_correction_lowers_the_refined_loss_and_its_materials_belong_to_the_refined_grid(problem, tmp_path,
                                                                                                       monkeypatch):
     """From one iteration's estimate (from E 3x too stiff; intervals off, so E and nu both move) the correction's

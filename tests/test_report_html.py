@@ -222,3 +222,19 @@ def test_the_settling_says_whether_gravity_acted():
     assert settling_text({**settle, "gravity": False}).startswith("8 frames without gravity, the instruments at "
                                                                   "their frame-0 pose, before frame 0")
     assert "under gravity" in settling_text(settle)  # a record written before "gravity" was recorded
+
+
+def test_a_discretisation_error_bar_wider_than_the_search_box_says_so():
+    """press_real at seed 1: +-3.16 decades of E in a 4.3-decade box. The interval is clipped to the box; the
+    text says the error bar spans more than it."""
+    from endogsim.evaluate.report_html import discretisation_text
+
+    disc = {"ratio": 1.44, "coarse_best": 76700.0, "shift": -0.46, "half_width": 3.16, "lower_bound": False}
+    box = [50.0, 1e6]
+    assert discretisation_text("E", disc, box) == ("+-3.16 decades, wider than the search box's 4.3 decades (the "
+                                                   "optimum on a grid 1.44x coarser: 7.67e+04 Pa, -0.46 decades)")
+    assert discretisation_text("E", {**disc, "half_width": 0.63}, box).startswith("+-0.63 decades (the optimum")
+    assert discretisation_text("E", disc).startswith("+-3.16 decades (the optimum")  # no box given: nothing said
+    nu = {"ratio": 1.44, "coarse_best": 0.3, "shift": -0.12, "half_width": 0.3, "lower_bound": True}
+    assert discretisation_text("nu", nu, [0.0, 0.49]) == ("+-0.3, wider than the search box's 0.49 (the optimum on a "
+                                                           "grid 1.44x coarser: 0.3, -0.12, or beyond)")

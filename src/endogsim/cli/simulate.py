@@ -29,7 +29,8 @@ def register(app: typer.Typer) -> None:
         no_ply: bool = typer.Option(False, "--no-ply", help="Skip the PLY sequence."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda (simulator)."),
         refine: Optional[float] = typer.Option(None, "--refine", help=REFINE_WHAT + ". Default: the factor the "
-                                               "materials were identified at (1 for the truth or a prior)."),
+                                               "materials were identified at (1 for the truth or a prior), with at "
+                                               "least the substeps per frame they were identified with there."),
     ) -> None:
         """Simulate a new interaction (tool trajectory, force on a region, or grasp-and-pull) on a scene with
         given materials; writes simulation.mp4, frames/*.png, ply/*.ply and summary.json."""

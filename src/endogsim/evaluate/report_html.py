@@ -227,12 +227,20 @@ def force_scale_text(d: dict) -> str:
             "and held borders prescribe motion, which alone fixes nu and the ratios of E, not E)")
 
 
-def discretisation_text(parameter: str, disc: dict) -> str:
+def discretisation_text(parameter: str, disc: dict, search_box: list[float] | None = None) -> str:
     """'+-0.63 decades (the optimum on a grid 1.42x coarser: 6474 Pa, -0.0888 decades)' from the dict of a
-    :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu")."""
+    :class:`~endogsim.identify.uncertainty.DiscretisationError` of ``parameter`` ("E", in Pa, or "nu"); with the
+    parameter's ``search_box`` (Pa for E), an error bar wider than the box says so (the interval is clipped to it:
+    "+-3.16 decades, wider than the search box's 4.3" reads as what it is, no statement about E beyond the box)."""
     unit, scale = (" Pa", " decades") if parameter == "E" else ("", "")
     beyond = ", or beyond" if disc.get("lower_bound") else ""
-    return (f"+-{disc['half_width']:.3g}{scale} (the optimum on a grid {disc['ratio']:.2f}x coarser: "
+    wider = ""
+    if search_box is not None:
+        lo, hi = search_box
+        width = math.log10(hi / lo) if parameter == "E" else hi - lo
+        if 2.0 * disc["half_width"] >= width:
+            wider = f", wider than the search box's {width:.3g}{scale}"
+    return (f"+-{disc['half_width']:.3g}{scale}{wider} (the optimum on a grid {disc['ratio']:.2f}x coarser: "
             f"{disc['coarse_best']:.4g}{unit}, {disc['shift']:+.3g}{scale}{beyond})")
 
 
@@ -412,7 +420,7 @@ def write_report(run_dir: str | os.PathLike, simulations: list[str | os.PathLike
                 stat, disc = v.get("statistical_interval"), v.get("discretisation")
                 irows.append([obj, par, f"{v['best']:.4g}{unit}", f"[{lo:.4g}, {hi:.4g}]{unit}",
                               "" if stat is None else f"[{stat[0]:.4g}, {stat[1]:.4g}]{unit}",
-                              "" if disc is None else discretisation_text(par, disc),
+                              "" if disc is None else discretisation_text(par, disc, v.get("search_box")),
                               "yes" if v["identifiable"] else "NO", v["reason"]])
         parts.append("<h2>Identifiability</h2>" + _table(
             ["object", "parameter", "optimum", "90% interval", "of which the video's noise", "discretisation",

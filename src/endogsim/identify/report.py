@@ -219,7 +219,7 @@ def interval_lines(intervals: list[ParameterInterval]) -> list[str]:
         if iv.discretisation is not None:
             lo, hi = iv.statistical_interval
             lines.append(f"      of which the video's noise [{lo:.4g}, {hi:.4g}]{unit}; the discretisation "
-                         f"{discretisation_text(iv.parameter, iv.discretisation)}")
+                         f"{discretisation_text(iv.parameter, iv.discretisation, iv.search_box)}")
     return lines
 
 
@@ -273,11 +273,12 @@ def write_outputs(run_dir: str | Path, problem: SimScene, result: IdentifyResult
 
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    # "refine": the discretisation the field belongs to (the refined one after a correction that moved it);
-    # `endogsim simulate` simulates it there by default
+    # "refine" and "substeps": the discretisation the field belongs to (the refined one after a correction that
+    # moved it) and the floor of substeps per frame it was fitted with there; `endogsim simulate` simulates it so
     refine = config.refine * (result.correction.factor if result.refined is not None else 1.0)
+    fitted = next(pb for pb in (result.refined, result.scene, problem) if pb is not None)
     result.field.meta = {**result.field.meta, "identified_from": str(problem.folder), "init": init_name,
-                         "refine": float(refine)}
+                         "refine": float(refine), "substeps": int(fitted.mpm.substeps_per_frame)}
     result.field.save(run / "materials_identified.json")
     result.init_field.save(run / "materials_init.json")
     write_json_atomic(run / "history.json", result.history)

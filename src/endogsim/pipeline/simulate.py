@@ -30,7 +30,8 @@ from endogsim.io.runfolder import run_folder
 from endogsim.materials.field import MaterialField
 from endogsim.pipeline.interaction import Interaction, Located, load_interaction
 
-__all__ = ["resolve_scene", "surface_point", "build_interaction", "identified_refine", "simulate_interaction"]
+__all__ = ["resolve_scene", "surface_point", "build_interaction", "identified_refine", "identified_substeps",
+           "simulate_interaction"]
 
 def resolve_scene(path: str | Path) -> tuple[Path, Path | None]:
     """The scene folder and the default materials file for a scene folder or a run folder.
@@ -273,6 +274,20 @@ def identified_refine(materials: str | Path | MaterialField | None) -> float:
     return float(MaterialField.load(materials).meta.get("refine", 1.0))
 
 
+def identified_substeps(fld: MaterialField, refine: float) -> int:
+    """The floor of substeps per frame ``fld`` was identified with (its meta's ``substeps``), where it is simulated
+    at the discretisation it was identified at (its ``refine``); else 0 (no floor beyond the scene's own: the
+    truth, an initialiser, a hand-written file, another discretisation). Identification plans its time step
+    once, at its initial materials (:func:`~endogsim.identify.optimize.planned_for`); a softer identified field
+    would take fewer substeps by the CFL rule alone and move otherwise than identification saw it move."""
+    count = fld.meta.get("substeps")
+    if count is None or float(fld.meta.get("refine", 1.0)) != float(refine):
+        return 0
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise MaterialError(f"the materials' meta 'substeps' is {count!r}, not a count of substeps per frame (>= 1)")
+    return count
+
+
 def simulate_interaction(
     scene: str | Path,
     interaction: str | Path | dict | Interaction,
@@ -298,7 +313,8 @@ def simulate_interaction(
         progress: optional callback(stage: str, done: int, total: int).
         refine: simulate at the scene's identification discretisation refined by this factor; None: the
             factor the materials were identified at (:func:`identified_refine`: an identified E belongs to
-            the discretisation it was fitted at).
+            the discretisation it was fitted at), with at least the substeps it was fitted with there
+            (:func:`identified_substeps`).
     Returns:
         the summary dict (also ``out/summary.json``).
     Raises:
@@ -318,6 +334,7 @@ def simulate_interaction(
     base = load_sim_scene(folder, device=device, refine=refine)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
+    problem = problem.with_substeps_at_least(identified_substeps(fld, refine))
     with run_folder(out, "simulate"):
         return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress,
                                    refine)

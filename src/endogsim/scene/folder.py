@@ -123,10 +123,16 @@ class SimScene:
         substep's time-discretisation error where a trial's CFL count would cross an integer; those jumps are as
         large as the loss rises that decide whether a parameter is identifiable. Returns ``self`` when its floor
         is already at least that count (planning twice is planning once)."""
-        count = self.simulator().timestep(materials, self.particles.v).substeps
+        return self.with_substeps_at_least(self.simulator().timestep(materials, self.particles.v).substeps)
+
+    def with_substeps_at_least(self, count: int) -> SimScene:
+        """This scene with its floor of substeps per frame raised to ``count`` (never lowered; ``self`` when it is
+        already there). A field simulated at the count it was identified with moves as identification saw it move:
+        the motion is not converged in the time step (docs/IDENTIFICATION.md section 3), so an E belongs to the
+        substeps it was fitted at as to the grid."""
         if count <= self.mpm.substeps_per_frame:
             return self
-        return replace(self, mpm=replace(self.mpm, substeps_per_frame=count))
+        return replace(self, mpm=replace(self.mpm, substeps_per_frame=int(count)))
 
     def independent_simulations(self) -> int:
         """How many simulations of this scene to run at a time (e.g. an interval's trials): one per torch
