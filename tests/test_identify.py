@@ -184,8 +184,13 @@ def test_materials_are_simulated_with_the_substeps_they_were_identified_with(tin
     soft.meta.pop("substeps")
     alone = simulate_interaction(tiny, poke, soft, tmp_path / "alone", write_ply_sequence=False)
     assert alone["substeps"] == cfl
-    with pytest.raises(MaterialError, match="'substeps' is 'many'"):
-        identified_substeps(MaterialField(soft.records, meta={"refine": 1.0, "substeps": "many"}), 1.0)
+    bad = MaterialField(soft.records, meta={"refine": 1.0, "substeps": "many"})
+    with pytest.raises(MaterialError, match="the materials: meta 'substeps' is 'many'"):
+        identified_substeps(bad, 1.0)
+    bad.save(tmp_path / "bad.json")  # a file is named in the error, and nothing is written
+    with pytest.raises(MaterialError, match=r"bad\.json: meta 'substeps' is 'many'"):
+        simulate_interaction(tiny, poke, tmp_path / "bad.json", tmp_path / "bad", write_ply_sequence=False)
+    assert not (tmp_path / "bad").exists()
 
 
 def test_the_refined_correction_lowers_the_refined_loss_and_its_materials_belong_to_the_refined_grid(problem, tmp_path,

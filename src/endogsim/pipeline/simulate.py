@@ -274,17 +274,18 @@ def identified_refine(materials: str | Path | MaterialField | None) -> float:
     return float(MaterialField.load(materials).meta.get("refine", 1.0))
 
 
-def identified_substeps(fld: MaterialField, refine: float) -> int:
+def identified_substeps(fld: MaterialField, refine: float, where: str = "the materials") -> int:
     """The floor of substeps per frame ``fld`` was identified with (its meta's ``substeps``), where it is simulated
     at the discretisation it was identified at (its ``refine``); else 0 (no floor beyond the scene's own: the
     truth, an initialiser, a hand-written file, another discretisation). Identification plans its time step
     once, at its initial materials (:func:`~endogsim.identify.optimize.planned_for`); a softer identified field
-    would take fewer substeps by the CFL rule alone and move otherwise than identification saw it move."""
+    would take fewer substeps by the CFL rule alone and move otherwise than identification saw it move.
+    ``where`` names the field in the error a bad record gets (its file)."""
     count = fld.meta.get("substeps")
     if count is None or float(fld.meta.get("refine", 1.0)) != float(refine):
         return 0
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise MaterialError(f"the materials' meta 'substeps' is {count!r}, not a count of substeps per frame (>= 1)")
+        raise MaterialError(f"{where}: meta 'substeps' is {count!r}, not a count of substeps per frame (>= 1)")
     return count
 
 
@@ -334,7 +335,9 @@ def simulate_interaction(
     base = load_sim_scene(folder, device=device, refine=refine)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
-    problem = problem.with_substeps_at_least(identified_substeps(fld, refine))
+    named = materials if materials is not None else default_mats
+    where = "the materials" if named is None or isinstance(named, MaterialField) else str(named)
+    problem = problem.with_substeps_at_least(identified_substeps(fld, refine, where))
     with run_folder(out, "simulate"):
         return _simulate_and_write(problem, inter, fld, info, folder, out, fps, write_ply_sequence, progress,
                                    refine)
