@@ -221,9 +221,6 @@ def test_cli_prior_on_shared_data(tmp_path):
 
     from endogsim.cli.main import app
 
-    io = pytest.importorskip("endogsim.io")
-    if not hasattr(io, "load_scene"):
-        pytest.skip("endogsim.io.load_scene not available")
     root = Path(os.environ.get("ENDOGSIM_SHARED_DATA", Path(__file__).parents[1] / ".." / "shared" / "data")).resolve()
     folder = root / "cholecseg8k_clip"
     if not folder.exists():

@@ -61,10 +61,9 @@ def test_tiny_folder_layout_and_scene_json(tiny):
 
 
 def test_tiny_loads_with_the_endonerf_loader(tiny):
-    io = pytest.importorskip("endogsim.io")
-    if not hasattr(io, "load_scene"):
-        pytest.skip("endogsim.io.load_scene not available yet")
-    scene = io.load_scene(tiny)
+    from endogsim.io import load_scene
+
+    scene = load_scene(tiny)
     truth = load_scene_spec(tiny)
     assert scene.frames.shape == (TINY_FRAMES, truth.camera.height, truth.camera.width, 3)
     if scene.depth is not None:
@@ -298,7 +297,7 @@ def test_a_ground_truth_whose_tissue_parts_is_refused(monkeypatch, tmp_path):
 
 
 def test_suite_materials_lie_in_the_priors_in_vivo_range():
-    prior = pytest.importorskip("endogsim.materials.prior")
+    from endogsim.materials import prior
     from endogsim.synth.suite import load_suite
 
     table = prior.load_prior_table()["classes"]

@@ -14,7 +14,9 @@ scene and the configuration; its observed-flow cache is reused):
     OMP_NUM_THREADS=1 python docs/experiments/loss_along_E_at_levels.py RUN_DIR 1,1.5,2 1112,2200,3500,5000,8000 \
         0.42,0.356
 
-prints one line per (level, nu, E) and writes RUN_DIR/loss_along_E_at_levels.json {"level|nu|E": loss}.
+prints one line per (level, nu, E), with the paired z of its per-frame loss against the first E's at that level and
+nu (:func:`endogsim.identify.uncertainty.paired_z`, the comparison the intervals make: below minus the printed
+threshold the loss is significantly lower), and writes RUN_DIR/loss_along_E_at_levels.json {"level|nu|E": loss}.
 """
 
 import json
@@ -27,6 +29,7 @@ import torch
 from endogsim.identify.config import IdentifyConfig
 from endogsim.identify.optimize import evaluate_loss, planned_for, prepare_observations
 from endogsim.identify.run import initial_field
+from endogsim.identify.uncertainty import paired_z, significant_z
 from endogsim.materials.field import nu_to_raw
 from endogsim.scene.folder import load_sim_scene
 
@@ -41,6 +44,7 @@ def main(run: Path, levels: list[float], Es: list[float], nus: list[float]) -> d
         pb = planned_for(pb, prior, cfg)  # as identification plans every level it simulates
         obs, cam = prepare_observations(pb, cfg, run)
         for nu in nus:
+            first = None  # the first E's per-frame loss: every other E is compared with it, as the intervals do
             for E in Es:
                 p = prior.to_params(global_material=cfg.global_material, nu_bounds=cfg.nu_bounds)
                 with torch.no_grad():
@@ -49,8 +53,11 @@ def main(run: Path, levels: list[float], Es: list[float], nus: list[float]) -> d
                 t0 = time.perf_counter()
                 value, _ = evaluate_loss(pb, prior, p, obs, cam, cfg, grad=False)
                 loss = float(value.total.detach())
+                first = value.per_frame if first is None else first
+                _, _, z = paired_z(value.per_frame, first)
                 print(f"level {level:g} grid {pb.mpm.grid_res} particles {len(pb.particles)} substeps "
-                      f"{pb.mpm.substeps_per_frame} nu {nu:.3f} E {E:8.1f} Pa loss {loss:.6f} "
+                      f"{pb.mpm.substeps_per_frame} nu {nu:.3f} E {E:8.1f} Pa loss {loss:.6f} paired z against "
+                      f"E {Es[0]:g} Pa {z:+.2f} (significant beyond {significant_z(len(first)):.2f}) "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
                 losses[f"{level:g}|{nu:g}|{E:g}"] = loss
     (run / "loss_along_E_at_levels.json").write_text(json.dumps(losses, indent=1))
