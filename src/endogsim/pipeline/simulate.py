@@ -330,12 +330,12 @@ def simulate_interaction(
     folder, default_mats = resolve_scene(scene)
     if out.resolve() in (Path(folder).resolve(), Path(scene).resolve()):
         raise DataError(f"{out}: --out is the scene (or run) folder itself; name a new folder for the simulation")
+    named = materials if materials is not None else default_mats  # the run folder's materials by default
     if refine is None:
-        refine = identified_refine(materials if materials is not None else default_mats)
+        refine = identified_refine(named)
     base = load_sim_scene(folder, device=device, refine=refine)
     fld = _materials(base, materials, default_mats)
     problem, info = build_interaction(base, inter)
-    named = materials if materials is not None else default_mats
     where = "the materials" if named is None or isinstance(named, MaterialField) else str(named)
     problem = problem.with_substeps_at_least(identified_substeps(fld, refine, where))
     with run_folder(out, "simulate"):
