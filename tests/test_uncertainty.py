@@ -23,6 +23,7 @@ from endogsim.identify.uncertainty import (
     identifiability,
     paired_z,
     parameter_intervals,
+    prior_checked,
     significant_z,
     walk_slice,
     widen,
@@ -326,6 +327,56 @@ def test_a_flat_loss_is_not_identifiable_and_keeps_the_prior():
     ident = identified_field(init, params, ivs)
     assert ident[1].E == 3000.0 and ident[1].nu == pytest.approx(nu_hat)
     assert ident[1].source == f"E: {NOT_IDENTIFIABLE}; nu: {ONE_SIDED}"
+
+
+def test_a_one_sided_exclusion_the_coarser_grid_does_not_share_keeps_the_prior():
+    """The fine loss rises steeply toward the prior (E 3000 Pa) and not at all the other way: the statistical
+    interval excludes the prior on one side, a one-sided estimate. Whether it stays one depends on the coarser
+    discretisation's loss at the prior: higher there (both grids agree) keeps the estimate, lower (they disagree)
+    keeps the prior, with an interval opened to the search box's end toward it; a coarse simulation that fails
+    leaves the verdict unchecked."""
+    import torch
+
+    init = _field()
+    params = init.to_params(nu_bounds=(0.0, 0.49))
+    with torch.no_grad():
+        params.log10_E += 1.0  # the estimate: 30 kPa, one decade above the prior
+    best = float(params.log10_E.detach()[0])
+    noise = np.random.default_rng(0).normal(0.0, 1e-3, 12)
+
+    def fine(trial) -> dict[int, float]:  # flat above the estimate, rising below it: bounded below only
+        d = max(best - float(trial.log10_E.detach()[0]), 0.0)
+        return {t: 1.0 + 0.5 * d + 0.05 * d * e for t, e in enumerate(noise)}
+
+    def coarse(prior_fits: str):
+        def loss(trial) -> dict[int, float]:
+            d = best - float(trial.log10_E.detach()[0])
+            if prior_fits == "fails" and d > 0.5:
+                raise SimulationError("the coarse simulation diverged")
+            slope = {"worse": 0.2, "better": -0.2, "fails": 0.2}[prior_fits]
+            return {t: 2.0 + slope * max(d, 0.0) + 0.01 * e * abs(d) for t, e in enumerate(noise)}
+        return loss
+
+    ivs = parameter_intervals(params, {1: "liver"}, fine, lambda trial: ([1.7], [6.0]), False)
+    (iv,) = ivs
+    assert not iv.identifiable and 3000.0 < iv.interval[0] < iv.best and iv.interval[1] == pytest.approx(1e6)
+    assert identified_field(init, params, ivs)[1].source == f"identified (E: {ONE_SIDED})"
+    one_sided = {(1, "E"): 3000.0}
+    kept = prior_checked(ivs, params, one_sided, coarse("worse"), 1.43)
+    assert kept[0].prior_check["excluded"] and kept[0].prior_check["z"] > 0 and kept[0].interval == iv.interval
+    assert identified_field(init, params, kept)[1].E == pytest.approx(30000.0)
+    assert ONE_SIDED in identified_field(init, params, kept)[1].source
+    vetoed = prior_checked(ivs, params, one_sided, coarse("better"), 1.43)
+    check = vetoed[0].prior_check
+    assert not check["excluded"] and check["z"] < 0 and check["prior"] == 3000.0 and check["ratio"] == 1.43
+    assert vetoed[0].interval == [pytest.approx(10 ** 1.7), iv.interval[1]]  # opened to the box's lower end
+    assert vetoed[0].statistical_interval == iv.statistical_interval and "fits at least as well" in vetoed[0].reason
+    ident = identified_field(init, params, vetoed)
+    assert ident[1].E == 3000.0 and NOT_IDENTIFIABLE in ident[1].source
+    failed = prior_checked(ivs, params, one_sided, coarse("fails"), 1.43)
+    assert failed[0].prior_check is None and "not checked at the coarser discretisation" in failed[0].reason
+    assert failed[0].interval == iv.interval and ONE_SIDED in identified_field(init, params, failed)[1].source
+    assert prior_checked(ivs, params, {}, coarse("better"), 1.43) == ivs  # nothing one-sided: nothing checked
 
 
 def test_nu_slice_ends_where_the_optimum_leaves_the_search_box():

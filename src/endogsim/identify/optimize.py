@@ -55,7 +55,7 @@ from endogsim.identify.loss import (
     observed_flow,
 )
 from endogsim.identify.refined_correction import Correction, correct_to_refined, shifted_interval
-from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals
+from endogsim.identify.uncertainty import ParameterInterval, parameter_intervals, prior_checked
 from endogsim.io.atomic import save_torch_atomic
 from endogsim.materials.field import MaterialField, MaterialParams, MaterialRecord, nu_to_raw
 from endogsim.physics import SimResult, max_stable_E
@@ -699,6 +699,12 @@ def identify(
                 workers=workers, reference=reference,
                 then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
                 min_relative_rise=cfg.tol)
+            if coarse_evaluate is not None:  # is a one-sided exclusion of the prior more than the discretisation's?
+                one_sided = {(iv.object_id, iv.parameter): getattr(init_field[iv.object_id], iv.parameter)
+                             for iv in intervals
+                             if source_of(iv, getattr(init_field[iv.object_id], iv.parameter)) == ONE_SIDED}
+                intervals = prior_checked(intervals, final, one_sided, coarse_evaluate,
+                                          problem.mpm.grid_res / coarse.mpm.grid_res, workers, on_trial)
         ident = identified_field(init_field, final, intervals)
         if cfg.intervals:
             stage_seconds["intervals"] = time.perf_counter() - t_stage
@@ -811,6 +817,8 @@ def source_of(iv: ParameterInterval | None, prior: float) -> str:
     initial value; :func:`identified_field` says when)."""
     if iv is None or iv.identifiable:
         return "identified"
+    if iv.prior_check is not None and not iv.prior_check["excluded"]:  # a coarser grid fits the prior as well
+        return NOT_IDENTIFIABLE
     lo, hi = iv.statistical_interval or iv.interval
     return NOT_IDENTIFIABLE if lo <= prior <= hi else ONE_SIDED
 
@@ -823,7 +831,10 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
     side, and the prior lies there), the estimate replaces it, labelled :data:`ONE_SIDED`. "The interval" here
     is the statistical one (the loss's frame-to-frame noise): whether this video moved the parameter away
     from its prior is a question about the data at this discretisation; the discretisation's own error,
-    which widens the reported interval, does not make the prior a better estimate."""
+    which widens the reported interval, does not make the prior a better estimate. Except where a coarser
+    discretisation fits the prior at least as well as the estimate (``prior_check``,
+    :func:`~endogsim.identify.uncertainty.prior_checked`): the two discretisations then disagree on which of
+    the two fits better, and the prior stays, not identifiable."""
     by = {(iv.object_id, iv.parameter): iv for iv in intervals}
     recs = []
     for r in init.from_params(final).records:  # every estimate, then the priors kept
