@@ -458,6 +458,7 @@ def test_a_tool_that_never_touches_the_tissue_determines_nothing(tmp_path):
         # an interval over the whole search box: no discretisation error could widen it, none is measured
         assert tissue[what]["interval"] == pytest.approx(tissue[what]["search_box"])
         assert tissue[what]["discretisation"] is None and tissue[what]["statistical_interval"] is None
+        assert tissue[what]["prior_check"] is None  # nothing excluded the prior: nothing to check
     assert m["materials"]["tissue"]["source"] == NOT_IDENTIFIABLE
     # summary.txt prints the tissue's intervals under the tissue's own line, not under the last object's
     lines = (tmp_path / "run" / "summary.txt").read_text().splitlines()

@@ -225,15 +225,17 @@ def interval_lines(intervals: list[ParameterInterval]) -> list[str]:
 
 def identifiable_table(intervals: list[ParameterInterval]) -> dict:
     """{object name: {parameter: {"identifiable": bool, "reason", "interval", "statistical_interval",
-    "discretisation", "search_box", "evidence"}}} (the last two of :class:`ParameterInterval`; None where the
-    discretisation error was not measured). ``evidence`` holds the slice through the optimum and
-    ``partner_slices``, the slices at the ends of a partner's interval where the video does not determine it."""
+    "discretisation", "search_box", "best", "prior_check", "evidence"}}} (as in :class:`ParameterInterval`; the
+    statistical interval and the discretisation None where the discretisation error was not measured, the prior
+    check None where no one-sided exclusion of the prior was checked). ``evidence`` holds the slice through the
+    optimum and ``partner_slices``, the slices at the ends of a partner's interval where the video does not
+    determine it."""
     out: dict = {}
     for iv in intervals:
         out.setdefault(iv.name, {})[iv.parameter] = {
             "identifiable": iv.identifiable, "reason": iv.reason, "interval": iv.interval,
             "statistical_interval": iv.statistical_interval, "discretisation": iv.discretisation,
-            "search_box": iv.search_box, "best": iv.best,
+            "search_box": iv.search_box, "best": iv.best, "prior_check": iv.prior_check,
             "evidence": {"first_gradient": iv.first_gradient, "critical_z": iv.critical_z,
                          "significant_z": iv.significant_z, "min_relative_rise": iv.min_relative_rise,
                          "slice": _slice_json(iv.slice),
