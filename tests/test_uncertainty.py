@@ -364,6 +364,7 @@ def test_a_one_sided_exclusion_the_coarser_grid_does_not_share_keeps_the_prior()
     one_sided = {(1, "E"): 3000.0}
     kept = prior_checked(ivs, params, one_sided, coarse("worse"), 1.43)
     assert kept[0].prior_check["excluded"] and kept[0].prior_check["z"] > 0 and kept[0].interval == iv.interval
+    assert "also fits it worse" in kept[0].reason
     assert identified_field(init, params, kept)[1].E == pytest.approx(30000.0)
     assert ONE_SIDED in identified_field(init, params, kept)[1].source
     vetoed = prior_checked(ivs, params, one_sided, coarse("better"), 1.43)

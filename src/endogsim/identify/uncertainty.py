@@ -813,12 +813,14 @@ def prior_checked(intervals: list[ParameterInterval], params: MaterialParams, pr
         delta, se, z = paired_z(per_frame, reference)
         record = {"prior": prior, "ratio": float(ratio), "delta_loss": delta, "noise": se, "z": z,
                   "excluded": z > 0.0}
+        unit = " Pa" if iv.parameter == "E" else ""
         if record["excluded"]:
-            return replace(iv, prior_check=record)
+            return replace(iv, prior_check=record, reason=iv.reason + (
+                f"; the video's noise excludes the prior {prior:.4g}{unit}, and a grid {ratio:.2f}x coarser also "
+                f"fits it worse (z {z:+.2f})"))
         lo, hi = iv.interval
         below = prior < iv.best
         interval = [iv.search_box[0], hi] if below else [lo, iv.search_box[1]]
-        unit = " Pa" if iv.parameter == "E" else ""
         reason = (f"; the video's noise excludes the prior {prior:.4g}{unit} at this discretisation, but on a grid "
                   f"{ratio:.2f}x coarser the prior fits at least as well (z {z:+.2f}): the exclusion is within the "
                   f"discretisation's error, so the prior stays and the interval reaches the search box's "
