@@ -817,7 +817,7 @@ def source_of(iv: ParameterInterval | None, prior: float) -> str:
     initial value; :func:`identified_field` says when)."""
     if iv is None or iv.identifiable:
         return "identified"
-    if iv.prior_check is not None and not iv.prior_check["excluded"]:  # a coarser grid fits the prior as well
+    if iv.prior_check is not None and not iv.prior_check["excluded"]:  # a coarser grid does not exclude it
         return NOT_IDENTIFIABLE
     lo, hi = iv.statistical_interval or iv.interval
     return NOT_IDENTIFIABLE if lo <= prior <= hi else ONE_SIDED
@@ -832,9 +832,9 @@ def identified_field(init: MaterialField, final: MaterialParams, intervals: list
     is the statistical one (the loss's frame-to-frame noise): whether this video moved the parameter away
     from its prior is a question about the data at this discretisation; the discretisation's own error,
     which widens the reported interval, does not make the prior a better estimate. Except where a coarser
-    discretisation fits the prior at least as well as the estimate (``prior_check``,
-    :func:`~endogsim.identify.uncertainty.prior_checked`): the two discretisations then disagree on which of
-    the two fits better, and the prior stays, not identifiable."""
+    discretisation does not exclude the prior by the same test (``prior_check``,
+    :func:`~endogsim.identify.uncertainty.prior_checked`): the exclusion then lies within the discretisation's
+    error, and the prior stays, not identifiable."""
     by = {(iv.object_id, iv.parameter): iv for iv in intervals}
     recs = []
     for r in init.from_params(final).records:  # every estimate, then the priors kept
