@@ -700,9 +700,11 @@ def identify(
                 then=evaluate_implied if evaluate is not None and workers > 1 else None, on_trial=on_trial,
                 min_relative_rise=cfg.tol)
             if coarse_evaluate is not None:  # is a one-sided exclusion of the prior more than the discretisation's?
-                one_sided = {(iv.object_id, iv.parameter): getattr(init_field[iv.object_id], iv.parameter)
-                             for iv in intervals
-                             if source_of(iv, getattr(init_field[iv.object_id], iv.parameter)) == ONE_SIDED}
+                one_sided = {}
+                for iv in intervals:
+                    prior = getattr(init_field[iv.object_id], iv.parameter)
+                    if source_of(iv, prior) == ONE_SIDED:
+                        one_sided[(iv.object_id, iv.parameter)] = prior
                 intervals = prior_checked(intervals, final, one_sided, coarse_evaluate,
                                           problem.mpm.grid_res / coarse.mpm.grid_res, workers, on_trial)
         ident = identified_field(init_field, final, intervals)
