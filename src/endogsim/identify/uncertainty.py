@@ -89,8 +89,8 @@ kPa for a true 4 kPa (prior 5 kPa), coarse z +0.49 against a critical 0.88. On `
 loss excluded the prior 5 kPa for an estimate of 82 kPa (truth 4 kPa) while the 0.7x loss preferred the prior (z
 -1.12). The critical z costs seed 0's ``press_real`` nu estimate (0.422 for a true 0.42; coarse z +0.62), which
 reverts to its prior 0.47. A check of consistency between two discretisations, not a better estimate
-(docs/IDENTIFICATION.md section 5). One coarse simulation per one-sided estimate (the coarse optimum's is the
-coarse walk's).
+(docs/IDENTIFICATION.md section 5). One coarse simulation per one-sided estimate (the optimum's coarse simulation
+is the coarse walk's).
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ class ParameterInterval:
             ``discretisation`` stay where they were measured.
         prior_check: where the statistical interval excludes the prior on one side, the same comparison at the
             coarser discretisation (:func:`prior_checked`): {"prior": Pa or -, "ratio": this grid over the coarse
-            one, "delta_loss", "noise", "z": the coarse loss at the prior against the coarse optimum's,
+            one, "delta_loss", "noise", "z": the coarse loss at the prior against the coarse loss at the optimum,
             "critical_z": the interval's, "excluded": the coarser discretisation excludes the prior too (z, counted
             as the interval counts it, above the critical z)}; None: not checked.
     """
