@@ -111,8 +111,8 @@ from endogsim.materials.field import MaterialParams
 from endogsim.warp_runtime import Cancelled, check_cancelled, run_independent
 
 __all__ = ["LEVEL", "E_STEPS", "NU_STEPS", "GCI_ORDER", "GCI_SAFETY", "ParameterInterval", "Slice",
-           "DiscretisationError", "counted_z", "paired_z", "critical_z", "significant_z", "interval_from_slice",
-           "walk_slice", "walk_side", "slice_from_sides",
+           "DiscretisationError", "least_rise", "counted_z", "paired_z", "critical_z", "significant_z",
+           "interval_from_slice", "walk_slice", "walk_side", "slice_from_sides",
            "identifiability", "profiled", "discretisation_error", "coarse_side", "discretisation_from_sides", "widen",
            "reachable_nu_max", "parameter_intervals", "prior_checked"]
 
@@ -196,6 +196,12 @@ class ParameterInterval:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+
+def least_rise(min_relative_rise: float, reference: dict[int, float]) -> float:
+    """The least rise of the summed loss that counts: ``min_relative_rise`` of the optimum's summed per-frame
+    ``reference`` loss (module docstring)."""
+    return min_relative_rise * abs(float(sum(reference.values())))
 
 
 def counted_z(delta: float, z: float, min_rise: float, ceiling: float) -> float:
@@ -568,7 +574,7 @@ def parameter_intervals(
         reference = evaluate(params)
     threshold, significance = critical_z(len(reference), level), significant_z(len(reference), level)
     stop = _stop_z(threshold, significance)
-    min_rise = min_relative_rise * abs(float(sum(reference.values())))
+    min_rise = least_rise(min_relative_rise, reference)
     cancel = threading.Event()  # set when a trial fails: the other walks stop starting trials
     # Every coarse walk starts at the optimum: the first to get there simulates it, the other waits for it
     # (a failure there is each walk's, and each says so).
@@ -820,9 +826,9 @@ def prior_checked(intervals: list[ParameterInterval], params: MaterialParams, pr
             on_trial({"object": iv.name, "parameter": iv.parameter, "value": prior, "grid": "coarse", "at": ""})
         delta, se, z = paired_z(per_frame, reference)
         threshold = iv.critical_z if iv.critical_z is not None else critical_z(len(set(per_frame) & set(reference)))
-        min_rise = iv.min_relative_rise * abs(sum(reference.values()))
         record = {"prior": prior, "ratio": float(ratio), "delta_loss": delta, "noise": se, "z": z,
-                  "critical_z": threshold, "excluded": counted_z(delta, z, min_rise, threshold) > threshold}
+                  "critical_z": threshold,
+                  "excluded": counted_z(delta, z, least_rise(iv.min_relative_rise, reference), threshold) > threshold}
         unit = " Pa" if iv.parameter == "E" else ""
         if record["excluded"]:
             return replace(iv, prior_check=record, reason=iv.reason + (
