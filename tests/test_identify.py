@@ -545,11 +545,11 @@ def from_3x_off(problem, tmp_path_factory):
 
 @pytest.mark.slow
 def test_from_3x_off_identification_moves_E_to_the_truth_within_the_discretisation_bias(from_3x_off):
-    """The ground truth is simulated 2x finer than identification, whose coarser grid is stiffer: the loss is
-    least about 1.2-1.3x above the true E here (docs/IDENTIFICATION.md section 3). From 3x too stiff the
-    estimate comes within that bias (measured: 3350 Pa for 2500), and the interval of the video's noise alone
-    excludes the start; the 90% interval with the discretisation's error (its grid convergence index) holds
-    the true E."""
+    """The ground truth is simulated 2x finer than identification, whose motion is not converged (bench
+    convergence: 0.243 on tiny), so the loss need not be least at the true E (at stop 27 it was least 1.2-1.3x
+    above it; docs/IDENTIFICATION.md section 3). From 3x too stiff the estimate comes within that bias, the
+    interval of the video's noise alone excludes the start, and the 90% interval with the discretisation's
+    error (its grid convergence index) holds the true E."""
     res, E_true = from_3x_off
     iv = next(iv for iv in res.intervals if iv.parameter == "E")
     assert 0.8 < res.field[1].E / E_true < 1.5, (res.field[1].E, E_true)
@@ -558,10 +558,16 @@ def test_from_3x_off_identification_moves_E_to_the_truth_within_the_discretisati
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="a target, not met: the discretisation bias against the 2x-finer ground "
-                   "truth is 20-35% on tiny (bench convergence: 0.268); flags when the simulator converges")
 def test_recovers_E_within_10_percent_from_3x_off(from_3x_off):
-    """From E 3x too stiff (nu known), identification lands within 10% of the true E."""
+    """From E 3x too stiff (nu known), identification lands within 10% of the true E.
+
+    Measured at stop 84: 2530 Pa for 2500 after 7 iterations (7500, 5957, 4519, 3244, 2179, 2659, 2407, 2530
+    Pa), the refined correction (1.5x) keeping it. This was a strict xfail until then, for a loss least
+    1.2-1.3x above the truth (3350 Pa at stop 27). The scene generator and the simulator have changed many
+    times since, and the loss is now least within a few per cent of the truth on this clip (0.028226,
+    0.028222, 0.028223 at 2407, 2530, 2659 Pa). The valley is flat: the noise's interval is [2084, 3307] Pa,
+    so 10% is where Rprop stops in it, not what the video guarantees. A change upstream that moves the
+    estimate out of 10% while the test above still passes is not by itself a regression of the method."""
     res, E_true = from_3x_off
     assert abs(res.field[1].E / E_true - 1) < 0.10, (res.field[1].E, E_true)
 
