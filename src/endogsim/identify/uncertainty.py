@@ -826,9 +826,9 @@ def prior_checked(intervals: list[ParameterInterval], params: MaterialParams, pr
             on_trial({"object": iv.name, "parameter": iv.parameter, "value": prior, "grid": "coarse", "at": ""})
         delta, se, z = paired_z(per_frame, reference)
         threshold = iv.critical_z if iv.critical_z is not None else critical_z(len(set(per_frame) & set(reference)))
+        min_rise = least_rise(iv.min_relative_rise, reference)
         record = {"prior": prior, "ratio": float(ratio), "delta_loss": delta, "noise": se, "z": z,
-                  "critical_z": threshold,
-                  "excluded": counted_z(delta, z, least_rise(iv.min_relative_rise, reference), threshold) > threshold}
+                  "critical_z": threshold, "excluded": counted_z(delta, z, min_rise, threshold) > threshold}
         unit = " Pa" if iv.parameter == "E" else ""
         if record["excluded"]:
             return replace(iv, prior_check=record, reason=iv.reason + (
